@@ -1,0 +1,35 @@
+# hammer_ros developer entry points. Everything installs into .venv/ at the repo root,
+# with the exact versions of requirements/lock.txt; `make setup` is idempotent.
+VENV      := .venv
+PYTHON    ?= python3
+BIN       := $(VENV)/bin
+STAMP     := $(VENV)/.installed-stamp
+PYTEST_ARGS ?=
+
+.PHONY: setup test demo lint reproduce bench clean
+
+setup: $(STAMP)
+
+$(STAMP): setup.py requirements/lock.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	env -u LD_LIBRARY_PATH -u _ROS_WHEELS_BOOTSTRAP_COMPLETE $(BIN)/python -m pip install -q --disable-pip-version-check \
+	    -c requirements/lock.txt -e ".[ros,test]"
+	touch $(STAMP)
+
+test: setup
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+demo: setup
+	$(BIN)/hammer-ros demo
+
+lint: setup
+	$(BIN)/ruff check hammer_ros test
+
+reproduce: setup
+	$(BIN)/hammer-ros reproduce all
+
+bench: setup
+	$(BIN)/hammer-ros bench
+
+clean:
+	rm -rf $(VENV) build install log *.egg-info

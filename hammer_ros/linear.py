@@ -1,0 +1,123 @@
+"""Discrete-time SISO linear blocks: transfer functions, simulation, poles/zeros, RSS error.
+
+Convention (paper 000, eqs. 1-2): coefficients are in powers of the delay operator q^-1,
+
+    y(k) = -sum_{j=1}^{n} a_j y(k-j) + sum_{i=0}^{m} b_i v(k-i),
+
+stored as ``a = [1, a_1, ..., a_n]`` and ``b = [b_0, ..., b_m]`` (``b_i = 0`` for i < d, the
+relative degree), i.e. G(q) = B(q^-1) / A(q^-1), the argument order of ``scipy.signal.lfilter``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+from scipy.optimize import linear_sum_assignment
+
+
+@dataclass(frozen=True, eq=False)
+class LinearModel:
+    """G(z) = (b_0 + b_1 z^-1 + ... + b_m z^-m) / (1 + a_1 z^-1 + ... + a_n z^-n)."""
+
+    b: np.ndarray
+    a: np.ndarray
+
+    def __post_init__(self) -> None:
+        b = np.atleast_1d(np.asarray(self.b, dtype=float))
+        a = np.atleast_1d(np.asarray(self.a, dtype=float))
+        if a.size == 0 or a[0] == 0.0:
+            raise ValueError("denominator must start with a non-zero coefficient")
+        object.__setattr__(self, "b", b / a[0])
+        object.__setattr__(self, "a", a / a[0])
+
+    @classmethod
+    def from_zeros_poles(cls, zeros, poles, dc_gain: float = 1.0) -> LinearModel:
+        """The block with the given zeros and poles (in z), relative degree n - m, scaled to
+        the static gain ``dc_gain`` (paper 000 normalises G1 and G2 to static gain 1)."""
+        num = np.real(np.poly(np.asarray(zeros, dtype=complex))) if len(zeros) else np.ones(1)
+        den = np.real(np.poly(np.asarray(poles, dtype=complex)))
+        delay = len(den) - len(num)
+        if delay < 0:
+            raise ValueError("improper transfer function: more zeros than poles")
+        b = np.concatenate([np.zeros(delay), num])
+        model = cls(b, den)
+        return cls(b * dc_gain / model.dc_gain, den)
+
+    @property
+    def order(self) -> int:
+        return self.a.size - 1
+
+    @property
+    def delay(self) -> int:
+        """Relative degree d: index of the first non-zero numerator coefficient."""
+        nz = np.flatnonzero(self.b)
+        return int(nz[0]) if nz.size else 0
+
+    @property
+    def dc_gain(self) -> float:
+        return float(np.sum(self.b) / np.sum(self.a))
+
+    def _zpk(self):
+        length = max(self.a.size, self.b.size)
+        b = np.pad(self.b, (0, length - self.b.size))
+        a = np.pad(self.a, (0, length - self.a.size))
+        # np.roots drops leading zeros (the relative degree); trailing zeros give roots at 0
+        z = list(np.roots(b).astype(complex)) if np.any(b) else []
+        p = list(np.roots(a).astype(complex))
+        # cancel the common roots at the origin introduced by equal-length padding
+        while 0j in z and 0j in p:
+            z.remove(0j)
+            p.remove(0j)
+        return np.array(z, dtype=complex), np.array(p, dtype=complex)
+
+    @property
+    def poles(self) -> np.ndarray:
+        return _sorted_roots(self._zpk()[1])
+
+    @property
+    def zeros(self) -> np.ndarray:
+        return _sorted_roots(self._zpk()[0])
+
+    def simulate(self, v: np.ndarray) -> np.ndarray:
+        """Free-run response to the input sequence ``v`` from zero initial conditions."""
+        return signal.lfilter(self.b, self.a, np.asarray(v, dtype=float))
+
+    def markov_parameters(self, count: int) -> np.ndarray:
+        """Impulse response h_0, ..., h_{count-1} (the Markov parameters, paper 000 sec. 2)."""
+        impulse = np.zeros(count)
+        impulse[0] = 1.0
+        return self.simulate(impulse)
+
+    def scaled(self, factor: float) -> LinearModel:
+        return LinearModel(self.b * factor, self.a)
+
+    def is_stable(self) -> bool:
+        return bool(np.all(np.abs(self.poles) < 1.0))
+
+
+def _sorted_roots(roots: np.ndarray) -> np.ndarray:
+    roots = np.asarray(roots, dtype=complex)
+    roots = np.where(np.abs(roots.imag) < 1e-12, roots.real + 0j, roots)
+    return roots[np.lexsort((roots.imag, roots.real))]
+
+
+def root_rss_error(true_roots, estimated_roots) -> float:
+    """Root-sum-square error between two sets of poles (or zeros), paper 000 section 4.2:
+
+        e_rss = sqrt(|z_1 - z1_hat|^2 + ... + |z_n - zn_hat|^2)
+
+    after matching each true root one-to-one with its closest estimate (the assignment that
+    minimises the sum of squared distances). Unmatched roots, when the counts differ, add
+    their squared modulus, so a model of the wrong order is never scored as exact.
+    """
+    t = np.atleast_1d(np.asarray(true_roots, dtype=complex))
+    e = np.atleast_1d(np.asarray(estimated_roots, dtype=complex))
+    if t.size == 0 or e.size == 0:
+        return float(np.sqrt(np.sum(np.abs(t) ** 2) + np.sum(np.abs(e) ** 2)))
+    cost = np.abs(t[:, None] - e[None, :]) ** 2
+    rows, cols = linear_sum_assignment(cost)
+    total = cost[rows, cols].sum()
+    total += np.sum(np.abs(np.delete(t, rows)) ** 2) + np.sum(np.abs(np.delete(e, cols)) ** 2)
+    return float(np.sqrt(total))

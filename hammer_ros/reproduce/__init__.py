@@ -1,0 +1,40 @@
+"""``hammer-ros reproduce``: the papers' numerical examples beside their published numbers.
+
+Each target module (``cls``, ``plls``, ``bf``, ``semiparametric``) exports
+``rows(runs: int | None, seed: int) -> list[dict]`` with dicts holding the contract's keys
+``paper, table, case, quantity, published, ours`` (published may be None where the paper
+gives no number).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+
+def reproduce_rows(targets, runs: int | None = None, seed: int = 0) -> list[dict]:
+    rows: list[dict] = []
+    for target in targets:
+        rows.extend(importlib.import_module(f"{__name__}.{target}").rows(runs, seed))
+    return rows
+
+
+def _cell(x) -> str:
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return f"{x:.4f}"
+    return str(x)
+
+
+def format_markdown(rows: list[dict]) -> str:
+    """One Markdown table per (paper, table)."""
+    out: list[str] = []
+    current = None
+    for row in rows:
+        key = (row["paper"], row["table"])
+        if key != current:
+            current = key
+            out += ["", f"### {row['paper']} - {row['table']}", "",
+                    "| case | quantity | published | ours |", "|---|---|---|---|"]
+        out.append(f"| {row['case']} | {row['quantity']} | {_cell(row['published'])} | {_cell(row['ours'])} |")
+    return "\n".join(out).strip() + "\n"

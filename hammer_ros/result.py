@@ -1,0 +1,92 @@
+"""The result of an identification: the model, its parts, and the contract's JSON form."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .linear import LinearModel
+
+
+def rms_error(y: np.ndarray, y_sim: np.ndarray) -> float:
+    """rms = sqrt(mean((y - y_sim)^2))."""
+    y, y_sim = np.asarray(y, float), np.asarray(y_sim, float)
+    return float(np.sqrt(np.mean((y - y_sim) ** 2)))
+
+
+def fit_percent(y: np.ndarray, y_sim: np.ndarray) -> float:
+    """fit = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (the NRMSE fit of MATLAB's compare)."""
+    y, y_sim = np.asarray(y, float), np.asarray(y_sim, float)
+    spread = np.linalg.norm(y - y.mean())
+    if spread == 0.0:
+        return float("nan")
+    return float(100.0 * (1.0 - np.linalg.norm(y - y_sim) / spread))
+
+
+def _roots_json(roots: np.ndarray) -> list[list[float]]:
+    return [[float(r.real), float(r.imag)] for r in np.asarray(roots, dtype=complex)]
+
+
+@dataclass(frozen=True, eq=False)
+class IdentificationResult:
+    """An identified model.
+
+    ``simulate`` maps an input sequence to the model's free-run output (the whole model:
+    nonlinearity, linear block and any feedback path), so fit and rms are computed the same
+    way for every method. ``gain`` is the method's gain figure (for CLS/NLS: h1_hat / h1 in
+    paper 000's tables, i.e. the first Markov parameter of the identified chain).
+    """
+
+    method: str
+    linear: LinearModel
+    simulate: Callable[[np.ndarray], np.ndarray]
+    order: int | None = None
+    gain: float | None = None
+    nonlinearity: Any = None
+    feedback_nonlinearity: Any = None
+    markov: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def poles(self) -> np.ndarray:
+        return self.linear.poles
+
+    @property
+    def zeros(self) -> np.ndarray:
+        return self.linear.zeros
+
+    def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None) -> dict:
+        """The ``identify --json`` document; fit_percent and rms when data (v, y) is given."""
+        doc: dict[str, Any] = {
+            "method": self.method,
+            "order": int(self.order if self.order is not None else self.linear.order),
+            "poles": _roots_json(self.linear.poles),
+            "zeros": _roots_json(self.linear.zeros),
+        }
+        if self.gain is not None:
+            doc["gain"] = float(self.gain)
+        doc["a"] = self.linear.a[1:].tolist()
+        doc["b"] = self.linear.b.tolist()
+        if self.markov is not None:
+            doc["markov"] = np.asarray(self.markov, dtype=float).tolist()
+        sample_range = None if v is None else (float(np.min(v)), float(np.max(v)))
+        if self.nonlinearity is not None:
+            doc["nonlinearity"] = self.nonlinearity.to_json(sample_range)
+        if self.feedback_nonlinearity is not None:
+            doc["feedback_nonlinearity"] = self.feedback_nonlinearity.to_json(
+                None if y is None else (float(np.min(y)), float(np.max(y)))
+            )
+        if v is not None and y is not None:
+            y_sim = self.simulate(v)
+            doc["fit_percent"] = _finite_or_none(fit_percent(y, y_sim))
+            doc["rms"] = _finite_or_none(rms_error(y, y_sim))
+        for key, value in self.extra.items():
+            doc.setdefault(key, value)
+        return doc
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
