@@ -12,6 +12,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from .errors import HammerRosError, UsageError
 from .methods import METHODS, IdentifyOptions
 
@@ -30,7 +32,7 @@ def _partition(text: str) -> tuple[float, ...]:
         values = tuple(float(x) for x in text.split(",") if x.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"--partition: not a comma-separated list of numbers: {text!r}") from None
-    if not values or any(later <= earlier for earlier, later in zip(values[:-1], values[1:])):
+    if not values or bool(np.any(np.diff(values) <= 0)):
         raise argparse.ArgumentTypeError(f"--partition: breakpoints must be strictly increasing: {text!r}")
     return values
 
