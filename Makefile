@@ -5,6 +5,7 @@ PYTHON    ?= python3
 BIN       := $(VENV)/bin
 STAMP     := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
+export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: setup test demo lint reproduce bench clean
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -22,6 +23,12 @@ REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric")
 
 class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error message (no usage dump) and exit code 2."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # values such as "--partition -0.25,0.25" start like a negative number, not an option
+        # (the rule of Python >= 3.12's argparse)
+        self._negative_number_matcher = re.compile(r"-\.?\d")
 
     def error(self, message: str) -> None:
         raise UsageError(message)
@@ -62,6 +69,8 @@ def add_identify_options(p: argparse.ArgumentParser, default_method: str = "cls-
     p.add_argument("--mu", type=_positive_int, default=None, help="number of Markov parameters (mu-Markov)")
     p.add_argument("--poly", type=_positive_int, default=3, help="polynomial order p of the nonlinearity (default 3)")
     p.add_argument("--partition", type=_partition, default=None, help="PLLS breakpoints c1,c2,...")
+    p.add_argument("--feedback-partition", type=_partition, default=None,
+                   help="plls-hammerstein-feedback: breakpoints d1,d2,... of the output feedback map")
     p.add_argument("--tau-max", type=_positive_int, default=None, help="largest correlation lag (CLS)")
     p.add_argument("--harmonic", default=None, help="semiparametric: the single-harmonic record DATA2")
 
@@ -84,6 +93,7 @@ def options_from_args(args: argparse.Namespace) -> IdentifyOptions:
     return IdentifyOptions(
         order=args.order, delay=args.delay, mu=args.mu, poly=args.poly,
         partition=args.partition, tau_max=args.tau_max, harmonic=harmonic,
+        feedback_partition=getattr(args, "feedback_partition", None),
     )
 
 
@@ -188,8 +198,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--solve-rate", type=float, default=None, help="solves per second of bag time")
     p.add_argument("--out", default=None, metavar="OUT.mcap", help="write every result into this MCAP")
     p.add_argument("--rate", type=float, default=None, help="play at this multiple of real time on the ROS graph")
+    p.add_argument("--forgetting", type=float, default=None, help="exponential forgetting factor (default 1: window)")
+    p.add_argument("--interpolation", choices=("zoh", "linear"), default=None, help="alignment (default zoh)")
     p.add_argument("--json", action="store_true")
-    p.set_defaults(func=_delegate("replay"))
+    # None = take it from --config (then the engine default): the identify options' defaults
+    p.set_defaults(func=_delegate("replay"), method=None, order=None, delay=None, poly=None)
 
     p = sub.add_parser("demo", help="simulated plant + live identification node")
     p.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")

@@ -39,3 +39,45 @@ def auto_correlation(v: np.ndarray, tau_max: int) -> np.ndarray:
 def lags(tau_max: int) -> np.ndarray:
     """The lag axis -tau_max..tau_max matching the correlation arrays."""
     return np.arange(-tau_max, tau_max + 1)
+
+
+def centred_square(x: np.ndarray) -> np.ndarray:
+    """w(k) = x'(k)^2 - mean(x'^2) with x' = x - mean(x), means over the whole record: the
+    input of the second-order cross-correlation (paper 003, eq. 21)."""
+    deviation = np.asarray(x, dtype=float) - np.mean(x)
+    square = deviation**2
+    return square - square.mean()
+
+
+def second_order_cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int) -> np.ndarray:
+    """phi_xxy'(tau) = E{y'(k) x'^2(k - tau)}, tau = -tau_max..tau_max (paper 003, eq. 21),
+    with y' = y - mean(y) and x' = x - mean(x) (the zero-mean Gaussian part of the input).
+
+    Computed as ``cross_correlation(centred_square(x), y', tau_max)``, i.e. with the same
+    eq. 8 estimator (N + 1 products per lag). Centring x'^2 changes nothing in expectation
+    (E{y'} = 0) and makes auto_correlation(centred_square(x)) = 2 phi_xx^2 (eq. 25), the
+    "input" against which the second-order correlation is fitted.
+    """
+    y = np.asarray(y, dtype=float)
+    return cross_correlation(centred_square(x), y - y.mean(), tau_max)
+
+
+def weighted_cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, forgetting: float) -> np.ndarray:
+    """Exponentially weighted form of eq. 8b, the batch reference of the streaming engine's
+    forgetting mode: with the centres k = tau_max .. c (c = L - 1 - tau_max, the newest centre
+    whose lags are all available) weighted by lambda^(c - k),
+
+        phi_yx(tau) = sum_k lambda^(c-k) y(k) x(k - tau) / sum_k lambda^(c-k),
+
+    which is ``cross_correlation`` for lambda = 1."""
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    if not 0.0 < forgetting <= 1.0:
+        raise ValueError(f"forgetting factor must be in (0, 1], got {forgetting}")
+    n_products = x.size - 2 * tau_max
+    if y.size != x.size or tau_max < 0 or n_products < 1:
+        raise ValueError(f"need two signals of equal length >= 2 tau_max + 1 = {2 * tau_max + 1}")
+    weights = forgetting ** np.arange(n_products - 1, -1, -1)
+    centre = weights * y[tau_max : tau_max + n_products]
+    out = np.array([centre @ x[tau_max - tau : tau_max - tau + n_products] for tau in lags(tau_max)])
+    return out / weights.sum()

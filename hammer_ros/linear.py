@@ -121,3 +121,16 @@ def root_rss_error(true_roots, estimated_roots) -> float:
     total = cost[rows, cols].sum()
     total += np.sum(np.abs(np.delete(t, rows)) ** 2) + np.sum(np.abs(np.delete(e, cols)) ** 2)
     return float(np.sqrt(total))
+
+
+def match_roots(true_roots, estimated_roots) -> np.ndarray:
+    """The estimate assigned to each true root by the one-to-one closest matching of
+    ``root_rss_error`` (paper 000 sec. 4.2), in the order of ``true_roots``; NaN where there
+    are fewer estimates than true roots."""
+    t = np.atleast_1d(np.asarray(true_roots, dtype=complex))
+    e = np.atleast_1d(np.asarray(estimated_roots, dtype=complex))
+    out = np.full(t.size, np.nan + 0j)
+    if t.size and e.size:
+        rows, cols = linear_sum_assignment(np.abs(t[:, None] - e[None, :]) ** 2)
+        out[rows] = e[cols]
+    return out

@@ -28,6 +28,7 @@ class IdentifyOptions:
     partition: tuple[float, ...] | None = None
     tau_max: int | None = None
     harmonic: tuple[Any, Any] | None = None  # (v, y) of the single-harmonic record
+    feedback_partition: tuple[float, ...] | None = None  # PLLS: breakpoints d of the feedback map h(y)
 
 
 METHODS: dict[str, tuple[str, str, dict]] = {

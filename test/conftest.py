@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import os
 import sys
 import tempfile
@@ -12,15 +11,13 @@ import numpy as np
 import pytest
 
 from hammer_ros.linear import LinearModel
+from hammer_ros.ros_env import DomainLease
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
 
 # paper 000, sec. 4.1
 G1 = LinearModel.from_zeros_poles([1.25, 0.5], [0.95, 0.245 + 0.574j, 0.245 - 0.574j], dc_gain=1.0)
-
-_domain_ids = itertools.count((os.getpid() % 40) * 2 + 10)
-
 
 @pytest.fixture
 def g1() -> LinearModel:
@@ -29,17 +26,21 @@ def g1() -> LinearModel:
 
 @pytest.fixture
 def ros_env(tmp_path):
-    """Environment for one test's ROS processes: its own ROS_DOMAIN_ID, loopback only."""
+    """Environment for one test's ROS processes: its own ROS_DOMAIN_ID, loopback only.
+
+    The domain id is leased exclusively (``ros_env.DomainLease``: an flock per id), so parallel
+    pytest runs, the demo and the tests of other checkouts on this machine never share a graph."""
     env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
-    env.update(
-        AMENT_PREFIX_PATH=str(VENV_BIN.parent),
-        ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-        ROS_DOMAIN_ID=str(next(_domain_ids) % 100 + 1),
-        ROS_LOG_DIR=str(tmp_path / "roslog"),
-        PYTHONUNBUFFERED="1",
-        FASTRTPS_DEFAULT_PROFILES_FILE=str(REPO / "hammer_ros" / "data" / "fastdds_fast_discovery.xml"),
-    )
-    return env
+    with DomainLease() as lease:
+        env.update(
+            AMENT_PREFIX_PATH=str(VENV_BIN.parent),
+            ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+            ROS_DOMAIN_ID=str(lease.domain_id),
+            ROS_LOG_DIR=str(tmp_path / "roslog"),
+            PYTHONUNBUFFERED="1",
+            FASTRTPS_DEFAULT_PROFILES_FILE=str(REPO / "hammer_ros" / "data" / "fastdds_fast_discovery.xml"),
+        )
+        yield env
 
 
 @pytest.fixture

@@ -1,0 +1,180 @@
+"""The diagnosis: baseline, evidence, extensions, decision.
+
+1. Baseline (``hammerstein.fit_baseline``) on the estimation part, free-run on the validation
+   part.
+2. Evidence on what the simulation gets wrong: the Billings-Voon / Billings-Zhu residual tests
+   (validation residual), the cause tests of ``evidence`` (regression signatures on the
+   validation residual, spectral lines on the estimation residual, windows over the whole
+   record).
+3. The causes whose test failed are ranked by the share of the residual their signature
+   explains; the extension of each of the best ``MAX_CANDIDATES`` is fitted on the
+   estimation part and simulated on the validation part.
+4. The cause is the candidate with the largest validation gain (baseline RMS / extended
+   RMS), if that gain is at least ``MIN_GAIN``; otherwise ``none``. A cause is thus named
+   only when its evidence supports it and its extension improves the validation fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..result import fit_percent, rms_error
+from .evidence import CauseTest, LineTest, WindowTest, signature_tests, spectral_lines, windowed_variation
+from .extensions import EXTENSIONS, Context, ExtendedModel
+from .hammerstein import HammersteinModel, fit_baseline, transient_samples
+from .residual_tests import CorrelationTest, Evidence, residual_tests
+from .split import Split, split_record
+
+MIN_GAIN = 1.05
+MAX_CANDIDATES = 4
+
+
+@dataclass(frozen=True)
+class ModelScore:
+    structure: str
+    rms: float
+    fit_percent: float
+
+    def to_json(self) -> dict:
+        return {"structure": self.structure, "rms": float(self.rms), "fit_percent": float(self.fit_percent)}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """The ``diagnose --json`` document (``to_json``); ``candidates`` holds the validation gain
+    of every extension that was fitted, ``details`` the numbers of the chosen one."""
+
+    baseline: ModelScore
+    cause: str
+    confidence: float
+    evidence: tuple[Evidence, ...]
+    extended: ModelScore | None
+    gain: float | None
+    candidates: tuple[tuple[str, float], ...] = ()
+    details: dict = field(default_factory=dict)
+    baseline_model: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        doc = {
+            "baseline": {**self.baseline.to_json(), **self.baseline_model},
+            "cause": self.cause,
+            "confidence": float(self.confidence),
+            "evidence": [e.to_json() for e in self.evidence],
+            "extended": None if self.extended is None else {**self.extended.to_json(), **self.details},
+            "gain": None if self.gain is None else {"rms_ratio": float(self.gain)},
+            "candidates": [{"cause": c, "rms_ratio": float(g)} for c, g in self.candidates],
+        }
+        return _finite(doc)
+
+
+def _finite(x):
+    """JSON-safe copy: non-finite floats become None."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    return x
+
+
+@dataclass(frozen=True, eq=False)
+class DiagnosisRun:
+    """A diagnosis with everything the report draws."""
+
+    diagnosis: Diagnosis
+    split: Split
+    baseline: HammersteinModel
+    baseline_output: np.ndarray  # free-run on the validation part
+    correlation_tests: tuple[CorrelationTest, ...]
+    cause_tests: tuple[CauseTest, ...]
+    lines: LineTest
+    windows: WindowTest
+    extensions: dict  # cause -> ExtendedModel (every one fitted)
+
+    @property
+    def extended(self) -> ExtendedModel | None:
+        return self.extensions.get(self.diagnosis.cause)
+
+
+def _score(structure: str, y: np.ndarray, y_sim: np.ndarray) -> ModelScore:
+    return ModelScore(structure, rms_error(y, y_sim), fit_percent(y, y_sim))
+
+
+def diagnose(split: Split, order: int | None = None, delay: int | None = None) -> DiagnosisRun:
+    """The diagnosis of the record in ``split`` (``order``: the user's nominal order; None =
+    chosen on the estimation data)."""
+    base = fit_baseline(split.v_est, split.y_est, order, delay)
+    skip = transient_samples(base.linear.poles, split.n_est)
+    x_est = base.simulate(split.v_est)
+    x_val = split.validation_output(base.simulate)
+    e_val = split.y_val - x_val
+    val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
+
+    correlation = tuple(residual_tests(split.v_val[val_skip:], split.y_val[val_skip:], e_val[val_skip:]))
+    lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
+    x_all = np.concatenate([x_est, x_val])
+    windows = windowed_variation(split.y_all, x_all, skip)
+    cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, val_skip)) + (
+        lines.cause_test(), windows.cause_test())
+
+    ctx = Context(split, base, lines, windows)
+    supported = sorted((t for t in cause_tests if t.supports), key=lambda t: -t.explained)[:MAX_CANDIDATES]
+    baseline_score = _score("hammerstein", split.y_val, x_val)
+    extensions: dict[str, ExtendedModel] = {}
+    gains: dict[str, float] = {}
+    for test in supported:
+        extended = EXTENSIONS[test.cause](ctx)
+        if extended is None or not np.all(np.isfinite(extended.validation_output)):
+            continue
+        extensions[test.cause] = extended
+        gains[test.cause] = baseline_score.rms / max(rms_error(split.y_val, extended.validation_output), 1e-300)
+
+    cause = max(gains, key=gains.get) if gains else "none"
+    if cause != "none" and gains[cause] < MIN_GAIN:
+        cause = "none"
+    evidence = tuple(t.evidence() for t in correlation) + tuple(t.evidence for t in cause_tests)
+    confidence = _confidence(cause, gains, evidence)
+    extended_score = None if cause == "none" else _score(extensions[cause].structure, split.y_val,
+                                                         extensions[cause].validation_output)
+    diagnosis = Diagnosis(
+        baseline=baseline_score,
+        cause=cause,
+        confidence=confidence,
+        evidence=evidence,
+        extended=extended_score,
+        gain=None if cause == "none" else gains[cause],
+        candidates=tuple(sorted(gains.items(), key=lambda kv: -kv[1])),
+        details={} if cause == "none" else extensions[cause].details,
+        baseline_model={"order": base.order, "delay": base.delay,
+                        "poles": [[float(p.real), float(p.imag)] for p in base.linear.poles],
+                        "nonlinearity": base.nonlinearity.to_json((float(split.v_est.min()), float(split.v_est.max())))},
+    )
+    return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions)
+
+
+def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, ...]) -> float:
+    """0..1. A named cause: how far its gain is above 1 (0.63 at a gain of 1.15) times how
+    clearly it beats the runner-up. ``none``: high when every test passes, lower when tests
+    fail or an extension came close to MIN_GAIN."""
+    if cause != "none":
+        g = gains[cause]
+        runner_up = max([v for c, v in gains.items() if c != cause] + [1.0])
+        strength = 1.0 - np.exp(-np.log(g) / np.log(1.15))
+        separation = float(np.clip(1.0 - np.log(max(runner_up, 1.0)) / np.log(g), 0.0, 1.0))
+        return float(np.clip(strength * (0.5 + 0.5 * separation), 0.0, 1.0))
+    failed = sum(1 for e in evidence if not e.passed) / max(len(evidence), 1)
+    closest = max(list(gains.values()) + [1.0])
+    near = float(np.clip(np.log(closest) / np.log(MIN_GAIN), 0.0, 1.0))
+    return float(np.clip((1.0 - 0.5 * failed) * (1.0 - 0.5 * near), 0.0, 1.0))
+
+
+def diagnose_record(v: np.ndarray, y: np.ndarray, order: int | None = None, delay: int | None = None,
+                    split: float = 0.7) -> Diagnosis:
+    """The diagnosis of one record (e.g. the live node's window): the first ``split`` of it
+    for estimation, the rest for validation. Pure function of its arguments."""
+    return diagnose(split_record(v, y, split), order, delay).diagnosis

@@ -1,0 +1,286 @@
+"""The tests that tell the causes apart.
+
+Each cause leaves its own first-order signature in the baseline's simulation error e = y - x
+(x the baseline's free-run output, F its map, G its linear block, v the input):
+
+| cause | e is, to first order, a combination of |
+|---|---|
+| output_nonlinearity | static functions of x: hinges (x - k_j)_+ at quantiles of x |
+| output_feedback | the same hinges passed through G: G[(x - k_j)_+] (y = G[F(v) - h(y)]) |
+| parallel_path | linear dynamics of v itself: lags and first-order filters of v |
+| unmodeled_dynamics | linear dynamics of F(v): lags and first-order filters of F(v) |
+| backlash | G[F'(v) s], s = sign of the last input change (play shifts v by -w/2 s) |
+| periodic_disturbance | sinusoids at lines of the spectrum of e that v and x do not have |
+| time_varying | a gain / lag / residual level that changes from window to window |
+
+The regression tests are partial F-tests (after [1, x]) on the prewhitened residual (an AR
+model of e, so that the F distribution holds for a coloured e), at the 99 % level. The line
+test compares the Hann periodogram with its running median (Bonferroni over the bins); the
+window test compares the largest step / trend statistic of the per-window sequences with
+its permutation distribution (windows of a stationary record are exchangeable). Every test
+also gives the fraction of the residual energy its signature explains, which ranks the
+causes whose test failed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage, signal, stats
+
+from ..piecewise_linear_ls import interval_index
+from ..regression import lagged_columns, solve_least_squares
+from .hammerstein import HammersteinModel
+from .residual_tests import Evidence
+
+LEVEL = 0.99
+PREWHITEN_ORDER = 10
+DYNAMIC_POLES = (0.5, 0.8, 0.9, 0.95, 0.98)
+MAX_LINES = 6
+
+
+@dataclass(frozen=True)
+class CauseTest:
+    """A cause-specific test: its evidence line and the share of the residual energy its
+    signature explains (0..1)."""
+
+    evidence: Evidence
+    explained: float
+
+    @property
+    def cause(self) -> str:
+        return self.evidence.cause
+
+    @property
+    def supports(self) -> bool:
+        return not self.evidence.passed
+
+
+# --------------------------------------------------------------------------- regression signatures
+
+
+def _ar_filter(e: np.ndarray, order: int) -> np.ndarray:
+    """[1, c_1..c_p]: the least-squares AR(p) whitening filter of e."""
+    rows = np.arange(order, e.size)
+    theta = solve_least_squares(lagged_columns(e, range(1, order + 1), rows), e[rows])
+    return np.concatenate([[1.0], -theta])
+
+
+def partial_f_test(e: np.ndarray, nuisance: np.ndarray, columns: np.ndarray, skip: int) -> tuple[float, float, float]:
+    """(F, 99 % critical value, explained share) for e ~ [nuisance, columns] against e ~ nuisance.
+
+    F is computed on the AR-prewhitened residual and regressors; the explained share is the
+    drop of the residual energy (raw, not whitened) due to ``columns``.
+    """
+    e, nuisance, columns = e[skip:], nuisance[skip:], columns[skip:]
+    base_fit = nuisance @ solve_least_squares(nuisance, e)
+    full = np.column_stack([nuisance, columns])
+    raw0 = float(np.sum((e - base_fit) ** 2))
+    raw1 = float(np.sum((e - full @ solve_least_squares(full, e)) ** 2))
+    order = min(PREWHITEN_ORDER, e.size // 20)
+    whiten = _ar_filter(e - base_fit, order) if order > 0 else np.ones(1)
+    ew = signal.lfilter(whiten, 1.0, e)[order:]
+    fw = signal.lfilter(whiten, 1.0, full, axis=0)[order:]
+    nw = fw[:, : nuisance.shape[1]]
+    ssr0 = float(np.sum((ew - nw @ solve_least_squares(nw, ew)) ** 2))
+    ssr1 = float(np.sum((ew - fw @ solve_least_squares(fw, ew)) ** 2))
+    q = int(np.linalg.matrix_rank(fw)) - int(np.linalg.matrix_rank(nw))
+    dof = ew.size - fw.shape[1]
+    if q <= 0 or dof <= 0 or ssr1 <= 0:
+        return 0.0, np.inf, 0.0
+    f_value = ((ssr0 - ssr1) / q) / (ssr1 / dof)
+    return float(f_value), float(stats.f.ppf(LEVEL, q, dof)), max(0.0, 1.0 - raw1 / raw0) if raw0 > 0 else 0.0
+
+
+def hinges(x: np.ndarray, count: int = 5) -> np.ndarray:
+    """(x - k_j)_+ at the quantiles j/(count+1) of x."""
+    knots = np.quantile(x, np.arange(1, count + 1) / (count + 1))
+    return np.maximum(x[:, None] - knots[None, :], 0.0)
+
+
+def dynamics_basis(s: np.ndarray) -> np.ndarray:
+    """Lags 0..3 of s and its first-order low-pass filters (1 - p)/(1 - p q^-1) at DYNAMIC_POLES."""
+    lags = np.column_stack([np.concatenate([np.full(i, s[0]), s[: s.size - i]]) for i in range(4)])
+    smooth = [signal.lfilter([1.0 - p], [1.0, -p], s, zi=[p * s[0]])[0] for p in DYNAMIC_POLES]
+    return np.column_stack([lags, *smooth])
+
+
+def last_direction(v: np.ndarray) -> np.ndarray:
+    """sign(v(k) - v(k-1)), held over samples where the input does not move."""
+    step = np.sign(np.diff(np.asarray(v, dtype=float), prepend=v[0]))
+    index = np.where(step != 0, np.arange(step.size), 0)
+    return step[np.maximum.accumulate(index)]
+
+
+def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np.ndarray, skip: int) -> list[CauseTest]:
+    """The regression-signature tests on one record (v input, x baseline output, e = y - x)."""
+    def through_g(columns: np.ndarray) -> np.ndarray:
+        return signal.lfilter(model.b, model.a, columns, axis=0)
+
+    fv = model.static(v)
+    slope = model.slopes[interval_index(v, model.partition)]
+    direction = last_direction(v)
+    nuisance = np.column_stack([np.ones_like(x), x])
+    signatures = {
+        "output_nonlinearity": ("residual vs static map of simulated output", hinges(x)),
+        "output_feedback": ("residual vs G[map of simulated output]", through_g(hinges(x))),
+        "parallel_path": ("residual vs linear dynamics of the input", dynamics_basis(v)),
+        "unmodeled_dynamics": ("residual vs linear dynamics of F(input)", dynamics_basis(fv)),
+        "backlash": ("residual vs input direction G[F'(u) sign(du)]",
+                     through_g(np.column_stack([slope * direction, direction]))),
+    }
+    tests = []
+    for cause, (name, columns) in signatures.items():
+        f_value, critical, explained = partial_f_test(e, nuisance, columns, skip)
+        tests.append(CauseTest(Evidence(f"{name} (F)", f_value, critical, f_value <= critical, cause), explained))
+    return tests
+
+
+# --------------------------------------------------------------------------- spectral lines
+
+
+@dataclass(frozen=True, eq=False)
+class LineTest:
+    """Lines of the residual spectrum not present in the input's or the simulated output's."""
+
+    frequencies: np.ndarray  # rad/sample, strongest first
+    ratio: float  # the strongest line's periodogram / running median
+    threshold: float
+    explained: float
+    periodogram: np.ndarray
+    grid: np.ndarray  # rad/sample
+
+    def cause_test(self) -> CauseTest:
+        passed = self.frequencies.size == 0
+        ev = Evidence("residual spectrum line not in the input's (peak / median)", self.ratio, self.threshold,
+                      passed, "periodic_disturbance")
+        return CauseTest(ev, 0.0 if passed else self.explained)
+
+
+def _line_ratio(x: np.ndarray, nfft: int, half_width: int) -> np.ndarray:
+    """Hann periodogram of x divided by its running median over +-half_width bins."""
+    x = np.asarray(x, dtype=float)
+    p = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(x.size), nfft)) ** 2
+    med = ndimage.median_filter(p, size=2 * half_width + 1, mode="nearest")
+    return p / np.maximum(med, 1e-300 + 1e-12 * float(np.max(p)))
+
+
+def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = LEVEL) -> LineTest:
+    """Peaks of the residual periodogram above the Bonferroni level of its running median
+    (for Gaussian noise, periodogram / median ~ Exp(1) / ln 2 in each of the ~N/2 bins), at
+    frequencies where no reference signal (input, simulated output) has a line."""
+    n = e.size
+    pad = 4
+    nfft = pad * int(2 ** np.ceil(np.log2(n)))
+    bins_per_natural = nfft / n
+    half = int(32 * bins_per_natural)
+    ratio = _line_ratio(e, nfft, half)
+    threshold = float(np.log(0.5 * n / (1.0 - level)) / np.log(2.0))
+    grid = 2 * np.pi * np.arange(ratio.size) / nfft
+    lobe = int(np.ceil(3 * bins_per_natural))
+    reference_ratio = np.max([ndimage.maximum_filter(_line_ratio(r, nfft, half), size=2 * lobe + 1)
+                              for r in references], axis=0)
+    peaks = signal.argrelmax(ratio, order=lobe)[0]
+    ok = (ratio[peaks] > threshold) & (reference_ratio[peaks] < threshold) & (peaks > 3 * lobe)
+    peaks = peaks[ok][np.argsort(ratio[peaks[ok]])[::-1]][:MAX_LINES]
+    frequencies = np.array([_refine_peak(ratio, p) * 2 * np.pi / nfft for p in peaks])
+    explained = 0.0
+    if frequencies.size:
+        k = np.arange(n)
+        basis = np.column_stack([np.ones(n)] + [f(w * k) for w in frequencies for f in (np.cos, np.sin)])
+        fit = basis @ solve_least_squares(basis, e)
+        e0 = e - e.mean()
+        explained = max(0.0, 1.0 - float(np.sum((e - fit) ** 2)) / float(np.sum(e0**2)))
+    strongest = float(ratio[peaks[0]]) if peaks.size else float(np.max(ratio[3 * lobe :]))
+    return LineTest(frequencies, strongest, threshold, explained, ratio, grid)
+
+
+def _refine_peak(p: np.ndarray, i: int) -> float:
+    """Fractional bin of a peak by parabolic interpolation of the log periodogram."""
+    if i <= 0 or i >= p.size - 1:
+        return float(i)
+    a, b, c = np.log(p[i - 1 : i + 2])
+    denom = a - 2 * b + c
+    return float(i + 0.5 * (a - c) / denom) if denom < 0 else float(i)
+
+
+# --------------------------------------------------------------------------- windows over time
+
+
+@dataclass(frozen=True, eq=False)
+class WindowTest:
+    """Per-window gain, lag and residual level of the baseline over the whole record."""
+
+    starts: np.ndarray  # first sample of each window (in the concatenated record)
+    gain: np.ndarray
+    statistic: float
+    threshold: float
+    change_point: int | None  # sample where the best step sits (when a step beats a trend)
+    drift_per_sample: float | None  # relative gain change per sample (when a trend wins)
+    explained: float
+
+    def cause_test(self) -> CauseTest:
+        passed = self.statistic <= self.threshold
+        ev = Evidence("change of gain/lag/residual level across windows (max t, permutation)",
+                      self.statistic, self.threshold, passed, "time_varying")
+        return CauseTest(ev, 0.0 if passed else self.explained)
+
+
+def _step_trend(seq: np.ndarray) -> tuple[float, float, int]:
+    """(largest |t| of a mean step, |t| of a linear trend, index of the best step) of the
+    per-window sequences (rows = windows, columns = sequences; maxima over the columns)."""
+    m = seq.shape[0]
+    idx = np.arange(m) - (m - 1) / 2
+    centred = seq - seq.mean(axis=0)
+    slope = idx @ centred / (idx @ idx)
+    res = centred - np.outer(idx, slope)
+    se = np.sqrt(np.sum(res**2, axis=0) / max(m - 2, 1) / (idx @ idx)) + 1e-300
+    trend = float(np.max(np.abs(slope) / se))
+    j = np.arange(2, m - 1)[:, None]  # a step after the first j windows
+    head_sum = np.cumsum(centred, axis=0)[j[:, 0] - 1]
+    head_sq = np.cumsum(centred**2, axis=0)[j[:, 0] - 1]
+    total_sq = np.sum(centred**2, axis=0)
+    mean1, mean2 = head_sum / j, -head_sum / (m - j)
+    resid = total_sq - j * mean1**2 - (m - j) * mean2**2
+    sp = np.sqrt(np.maximum(resid, 1e-300) / (m - 2))
+    t = np.max(np.abs(mean1 - mean2) / (sp * np.sqrt(1.0 / j + 1.0 / (m - j))), axis=1)
+    best = int(np.argmax(t))
+    return float(t[best]), trend, int(j[best, 0])
+
+
+def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: int = 400) -> WindowTest:
+    """Split the record (after ``skip`` transient samples) in windows; in each, fit
+    y ~ c + g x + l dx (gain g, lag l) and take the residual level; test the three sequences
+    for a step or a trend against their permutation distribution (fixed seed)."""
+    y, x = np.asarray(y, float)[skip:], np.asarray(x, float)[skip:]
+    windows = int(np.clip(y.size // 250, 8, 40))
+    length = y.size // windows
+    starts = skip + length * np.arange(windows)
+    rows, ssr_local = [], 0.0
+    dx = np.diff(x, prepend=x[0])
+    for w in range(windows):
+        s = slice(w * length, (w + 1) * length)
+        basis = np.column_stack([np.ones(length), x[s], dx[s]])
+        theta = solve_least_squares(basis, y[s])
+        r = y[s] - basis @ theta
+        ssr_local += float(np.sum(r**2))
+        rows.append([theta[1], theta[2], np.log(np.sqrt(np.mean(r**2)) + 1e-300)])
+    seq = np.asarray(rows)
+    step, trend, j = _step_trend(seq)
+    observed = max(step, trend)
+    rng = np.random.default_rng(0)
+    null = [max(_step_trend(seq[rng.permutation(windows)])[:2]) for _ in range(permutations)]
+    threshold = float(np.quantile(null, LEVEL))
+    used = slice(0, windows * length)
+    basis = np.column_stack([np.ones(windows * length), x[used], dx[used]])
+    ssr_global = float(np.sum((y[used] - basis @ solve_least_squares(basis, y[used])) ** 2))
+    explained = max(0.0, 1.0 - ssr_local / ssr_global - 3.0 * (windows - 1) / (windows * length)) if ssr_global > 0 else 0.0
+    gain = seq[:, 0]
+    change_point = drift = None
+    if step >= trend:
+        change_point = int(starts[j])
+    else:
+        idx = np.arange(windows)
+        drift = float(np.polyfit(idx, gain, 1)[0] / length / max(abs(np.mean(gain)), 1e-12))
+    return WindowTest(starts, gain, observed, threshold, change_point, drift, explained)

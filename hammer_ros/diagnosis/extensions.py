@@ -1,0 +1,472 @@
+"""One extended model per cause, fitted on the estimation data and simulated free-run on the
+validation data (``Split.validation_output``).
+
+Every extension starts from a paper's estimate or from the baseline and is refined on the
+simulation error (``simulation_error.refine``), like the baseline, so that the gains compare
+structures, not estimators.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import signal
+from scipy.optimize import minimize_scalar
+
+from ..billings_fakhouri import identify_feedforward
+from ..errors import IdentificationError
+from ..linear import LinearModel
+from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map
+from ..regression import build_regression, solve_least_squares
+from ..simulate import play_operator, simulate_hammerstein_feedback
+from .causes import EXTENSION
+from .evidence import LineTest, WindowTest
+from .hammerstein import (
+    HammersteinModel,
+    HammersteinParameters,
+    bic,
+    fit_hammerstein,
+    quantile_partition,
+    refine_hammerstein,
+    transient_samples,
+)
+from .simulation_error import preroll_simulate, refine, settling_samples, stabilised_denominator, steady_state_filter
+from .split import Split
+
+MAX_EXTRA_ORDER = 4
+MAX_ORDER = 8
+SLOW_FIT_SAMPLES = 3000  # the sample-by-sample feedback loop is refined on at most this many samples
+OUTPUT_MAP_BREAKPOINTS = 6
+FEEDBACK_BREAKPOINTS = 5
+
+
+@dataclass(frozen=True)
+class MapPlot:
+    """An identified static map for the report: f(x) on a grid."""
+
+    title: str
+    x: np.ndarray
+    y: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class ExtendedModel:
+    """The extension for ``cause``: its structure, its free-run validation output, the numbers
+    that describe it (JSON-able) and its identified maps."""
+
+    cause: str
+    structure: str
+    validation_output: np.ndarray
+    details: dict = field(default_factory=dict)
+    maps: tuple[MapPlot, ...] = ()
+
+
+@dataclass(frozen=True, eq=False)
+class Context:
+    """What every extension may use: the data, the baseline, the line and window tests."""
+
+    split: Split
+    baseline: HammersteinModel
+    lines: LineTest
+    windows: WindowTest
+
+    @property
+    def skip(self) -> int:
+        return transient_samples(self.baseline.linear.poles, self.split.n_est)
+
+
+def map_plot(title: str, fn: Callable[[np.ndarray], np.ndarray], samples: np.ndarray) -> MapPlot:
+    grid = np.linspace(float(np.min(samples)), float(np.max(samples)), 200)
+    return MapPlot(title, grid, np.asarray(fn(grid), dtype=float))
+
+
+def _order_details(model: HammersteinModel) -> dict:
+    return {"order": model.order, "delay": model.delay,
+            "poles": [[float(p.real), float(p.imag)] for p in model.linear.poles]}
+
+
+# --------------------------------------------------------------------------- unmodeled dynamics
+
+
+def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel | None:
+    """Orders n+1 .. n+4 (at most 8) on the baseline's partition; the one with the smallest
+    simulation-error BIC on the estimation data, if it beats the baseline's."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    best, best_score = None, bic(y[skip:], base.simulate(v)[skip:], base.parameter_count())
+    for order in range(base.order + 1, min(base.order + MAX_EXTRA_ORDER, MAX_ORDER) + 1):
+        try:
+            model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False)
+        except (IdentificationError, np.linalg.LinAlgError, ValueError):
+            continue
+        score = bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())
+        if score < best_score:
+            best, best_score = model, score
+    if best is None:
+        return None
+    return ExtendedModel("unmodeled_dynamics", f"hammerstein order {best.order}", s.validation_output(best.simulate),
+                         _order_details(best))
+
+
+# --------------------------------------------------------------------------- backlash
+
+
+def extend_backlash(ctx: Context) -> ExtendedModel | None:
+    """y = G[F(P_w(v))]: the play width w from a grid and a bounded scalar search on the
+    simulation error with G fixed at the baseline's (F re-fitted by least squares for each w),
+    then the Hammerstein model on P_w(v) refined as the baseline is."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    count = base.partition.size
+
+    def cost(width: float) -> float:
+        z = play_operator(v, width)
+        try:
+            partition = quantile_partition(z, count)
+        except IdentificationError:
+            return np.inf
+        columns = np.column_stack([point_slope_basis(z, partition, max(1, partition.size // 2)), np.ones(z.size)])
+        filtered = np.column_stack([steady_state_filter(base.b, base.a, c) for c in columns.T])
+        theta = solve_least_squares(filtered[skip:], y[skip:])
+        return float(np.sum((y[skip:] - filtered[skip:] @ theta) ** 2))
+
+    scale = float(np.std(v))
+    grid = scale * np.array([0.0, 0.03, 0.07, 0.12, 0.2, 0.3, 0.42, 0.56, 0.75, 1.0, 1.3])
+    costs = [cost(w) for w in grid]
+    i = int(np.argmin(costs))
+    if i == 0:
+        return None
+    lo, hi = grid[i - 1], grid[min(i + 1, grid.size - 1)]
+    found = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.01 * scale, "maxiter": 12})
+    width = float(found.x) if found.fun < costs[i] else float(grid[i])
+    z = play_operator(v, width)
+    model = fit_hammerstein(z, y, base.order, base.delay, quantile_partition(z, count))
+
+    def simulate(u: np.ndarray) -> np.ndarray:
+        return model.simulate(play_operator(u, width))
+
+    details = {"width": width, **_order_details(model)}
+    maps = (map_plot("F after the play operator", model.static, z),)
+    return ExtendedModel("backlash", "play operator + hammerstein", s.validation_output(simulate), details, maps)
+
+
+# --------------------------------------------------------------------------- output nonlinearity
+
+
+def extend_output_nonlinearity(ctx: Context) -> ExtendedModel | None:
+    """Hammerstein-Wiener y = N(G[F(v)]): N piecewise linear on quantiles of the baseline's
+    output x, started from the least-squares fit of y on x, then everything refined on the
+    simulation error (G's largest coefficient fixed, as in the baseline)."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    x = base.simulate(v)
+    partition = quantile_partition(x[skip:], OUTPUT_MAP_BREAKPOINTS)
+    primary = max(1, partition.size // 2)
+    zeta = point_slope_basis(x, partition, primary)
+    init = solve_least_squares(np.column_stack([zeta, np.ones(x.size)])[skip:], y[skip:])
+    params = HammersteinParameters(base)
+    eta = base.basis(v)
+    size = params.size
+
+    def output_map(theta: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        return point_slope_map(partition, primary, theta[size:-1], float(theta[-1]))
+
+    def simulate_theta(theta: np.ndarray) -> np.ndarray:
+        m = params.unpack(theta[:size])
+        inner = steady_state_filter(m.b, m.a, eta @ m.slopes + m.kappa)
+        return point_slope_basis(inner, partition, primary) @ theta[size:-1] + theta[-1]
+
+    theta = refine(simulate_theta, np.concatenate([params.pack(base), init]), y, 40, skip)
+    inner_model, n_map = params.unpack(theta[:size]), output_map(theta)
+
+    def simulate(u: np.ndarray) -> np.ndarray:
+        return n_map(inner_model.simulate(u))
+
+    inner = inner_model.simulate(v)
+    maps = (map_plot("F (input map)", inner_model.static, v), map_plot("N (output map)", n_map, inner))
+    details = {"output_breakpoints": partition.tolist(), **_order_details(inner_model)}
+    return ExtendedModel("output_nonlinearity", "hammerstein-wiener", s.validation_output(simulate), details, maps)
+
+
+# --------------------------------------------------------------------------- output feedback
+
+
+def _feedback_simulator(a, b, f_map, h_map, preroll: int) -> Callable[[np.ndarray], np.ndarray]:
+    linear = LinearModel(b, a)
+
+    def run(u: np.ndarray) -> np.ndarray:
+        return simulate_hammerstein_feedback(u, f_map, h_map, linear)
+
+    return lambda u: preroll_simulate(run, u, preroll)
+
+
+def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
+    """Hammerstein / non-linear feedback y = G[f(v) - h(y)] (paper 001 sec. 4.3): PLLS with f
+    on the baseline's breakpoints and h on quantiles of y, or the baseline itself (h = 0) when
+    PLLS's equation-error loop simulates worse (it can be unstable under coloured noise), then
+    the simulation-error refinement of (A, B, f, h) on at most SLOW_FIT_SAMPLES samples (the
+    loop is simulated sample by sample)."""
+    base, s = ctx.baseline, ctx.split
+    fit = s.estimation_tail(SLOW_FIT_SAMPLES + ctx.skip)
+    v, y = fit.v_est, fit.y_est
+    delay = max(base.delay, 1)
+    try:
+        f_part = drop_empty_intervals(v, base.partition)
+        h_part = quantile_partition(y, FEEDBACK_BREAKPOINTS)
+        est = plls(v, y, base.order, delay, "hammerstein_feedback", partition=f_part, feedback_partition=h_part)
+    except (IdentificationError, np.linalg.LinAlgError, ValueError):
+        return None
+    a0 = stabilised_denominator(est.linear.a)
+    preroll = settling_samples(np.roots(a0), cap=500)
+    r_f, r_h = est.primary_index, est.feedback_primary_index
+    b0 = est.linear.b
+    free_b = np.arange(delay, b0.size)
+    fixed = delay + int(np.argmax(np.abs(b0[delay:])))
+    free_b = free_b[free_b != fixed]
+    n, nb, nf = base.order, free_b.size, f_part.size + 1
+
+    def unpack(theta: np.ndarray):
+        a = np.concatenate([[1.0], theta[:n]])
+        b = b0.copy()
+        b[free_b] = theta[n : n + nb]
+        k = n + nb
+        f_map = point_slope_map(f_part, r_f, theta[k : k + nf], float(theta[k + nf]))
+        h_map = point_slope_map(h_part, r_h, theta[k + nf + 1 :], 0.0)
+        return a, b, f_map, h_map
+
+    skip = min(ctx.skip, v.size // 5)
+
+    def simulate_theta(theta: np.ndarray) -> np.ndarray:
+        return _feedback_simulator(*unpack(theta), preroll)(v)
+
+    f0, h0 = est.nonlinearity, est.feedback
+    starts = [np.concatenate([a0[1:], b0[free_b], f0.slopes, [f0.values[r_f - 1] - h0.values[r_h - 1]], h0.slopes])]
+    b_base = np.pad(base.b, (0, max(0, b0.size - base.b.size)))[: b0.size]
+    if abs(b_base[fixed]) > 0 and base.a.size == a0.size:
+        scale = b0[fixed] / b_base[fixed]  # the fixed coefficient keeps PLLS's value
+        f_fit = solve_least_squares(np.column_stack([point_slope_basis(v, f_part, r_f), np.ones(v.size)]),
+                                    base.static(v)) / scale
+        starts.append(np.concatenate([base.a[1:], b_base[free_b] * scale, f_fit, np.zeros(h_part.size + 1)]))
+    costs = [float(np.sum((simulate_theta(t) - y)[skip:] ** 2)) for t in starts]
+    costs = [c if np.isfinite(c) else np.inf for c in costs]
+    theta = refine(simulate_theta, starts[int(np.argmin(costs))], y, 12, skip)
+    a, b, f_map, h_map = unpack(theta)
+    simulate = _feedback_simulator(a, b, f_map, h_map, preroll)
+    output = s.validation_output(simulate)
+    if not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y):
+        return None
+    maps = (map_plot("f (input map)", f_map, v), map_plot("h (output feedback map)", h_map, y))
+    details = {"feedback_breakpoints": h_part.tolist(), **_order_details(replace(base, a=a, b=b))}
+    return ExtendedModel("output_feedback", "hammerstein / non-linear feedback (PLLS)", output, details, maps)
+
+
+# --------------------------------------------------------------------------- parallel path
+
+
+def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int, skip: int) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of an ARX fit of target on u (shared builder), stabilised."""
+    reg = build_regression(target, u, order, delay)
+    theta = solve_least_squares(reg.phi, reg.target)
+    a, coefficients = reg.split(theta)
+    b = np.concatenate([np.zeros(delay), coefficients[:, 0]])
+    return b, stabilised_denominator(np.concatenate([[1.0], a]))
+
+
+def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
+    """Feedforward system y = G1[F(v)] + G2[v] (paper 003 sec. 3, Fig. 3): started from the
+    baseline plus a second-order path fitted to its residual, and from the Billings-Fakhouri
+    correlation estimate (``billings_fakhouri.identify_feedforward``, exact for a Gaussian
+    input) when it applies; the start with the smaller simulation error after refinement wins."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    params = HammersteinParameters(base)
+    size = params.size
+    path_order = 2
+
+    def unpack(theta: np.ndarray):
+        m = params.unpack(theta[:size])
+        a2 = np.concatenate([[1.0], theta[size : size + path_order]])
+        return m, theta[size + path_order :], a2
+
+    def simulate_with(theta: np.ndarray, u: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+        m, b2, a2 = unpack(theta)
+        branch = steady_state_filter(m.b, m.a, (m.basis(u) if basis is None else basis) @ m.slopes + m.kappa)
+        return branch + steady_state_filter(b2, a2, u)
+
+    eta = base.basis(v)
+    starts = []
+    residual = y - base.simulate(v)
+    b2, a2 = _linear_fit(v, residual, path_order, 0, skip)
+    starts.append(np.concatenate([params.pack(base), a2[1:], b2]))
+    bf = _billings_fakhouri_start(ctx, params, path_order)
+    if bf is not None:
+        starts.append(bf)
+    best, best_cost = None, np.inf
+    for theta0 in starts:
+        theta = refine(lambda t: simulate_with(t, v, eta), theta0, y, 40, skip)
+        c = float(np.sum((y - simulate_with(theta, v, eta))[skip:] ** 2))
+        if c < best_cost:
+            best, best_cost = theta, c
+    model, b2, a2 = unpack(best)
+    path = LinearModel(b2, a2)
+
+    def simulate(u: np.ndarray) -> np.ndarray:
+        return simulate_with(best, u)
+
+    details = {"branch": _order_details(model), "parallel_path": {
+        "b": path.b.tolist(), "a": path.a[1:].tolist(), "poles": [[float(p.real), float(p.imag)] for p in path.poles]}}
+    maps = (map_plot("F (Hammerstein branch)", model.static, v),)
+    return ExtendedModel("parallel_path", "feedforward (hammerstein + linear path)", s.validation_output(simulate),
+                         details, maps)
+
+
+def _billings_fakhouri_start(ctx: Context, params: HammersteinParameters, path_order: int) -> np.ndarray | None:
+    """The Billings-Fakhouri feedforward estimate in this module's parameters: its branch
+    polynomial projected on the baseline's piecewise-linear basis, its parallel path
+    re-fitted at ``path_order``."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    try:
+        fit = identify_feedforward(v, y, base.order, max(base.delay, 1), poly=3)
+    except (IdentificationError, np.linalg.LinAlgError, ValueError):
+        return None
+    if not (fit.branch.is_stable() and fit.parallel_path.is_stable()):
+        return None
+    branch_input = fit.nonlinearity(v)
+    basis = np.column_stack([base.basis(v), np.ones(v.size)])
+    coefficients = solve_least_squares(basis, branch_input)
+    b = np.zeros_like(base.b)
+    b[: min(b.size, fit.branch.b.size)] = fit.branch.b[: b.size]
+    if fit.branch.a.size != base.a.size or abs(b[params.fixed]) < 1e-9 * np.max(np.abs(b)):
+        return None
+    scale = base.b[params.fixed] / b[params.fixed]  # the fixed coefficient keeps the baseline's value
+    model = replace(base, a=stabilised_denominator(fit.branch.a), b=b * scale, slopes=coefficients[:-1] / scale,
+                    kappa=float(coefficients[-1] / scale))
+    path = fit.parallel_path.simulate(np.eye(1, 200, 0)[0])
+    b2, a2 = _linear_fit(np.eye(1, 200, 0)[0], path, path_order, 0, 0)
+    return np.concatenate([params.pack(model), a2[1:], b2])
+
+
+# --------------------------------------------------------------------------- time-varying
+
+
+def extend_time_varying(ctx: Context) -> ExtendedModel | None:
+    """Sliding-window re-identification: the validation record is simulated block by block,
+    each block with the baseline re-fitted (A, B and the map's offset; the map's shape kept)
+    on the last ``window`` measured samples before it, the state carried over from the
+    simulated output. Reports the window test's change point or drift rate."""
+    base, s = ctx.baseline, ctx.split
+    v_all = s.v_all if s.continuous else s.v_val
+    y_all = s.y_all if s.continuous else s.y_val
+    start = s.n_est if s.continuous else 0
+    n_val = s.v_val.size
+    free = base.order + np.count_nonzero(base.b) + 1
+    window = int(np.clip(n_val // 3, 30 * free, 6000))
+    window = min(window, start) if start else window
+    if window < 20 * free:
+        return None
+    block = max(window // 4, 10)
+    u_all = base.static(v_all)
+    out = np.empty(n_val)
+    model = base
+    history_y = base.simulate(v_all[:start]) if start else np.zeros(0)
+    for k0 in range(start, start + n_val, block):
+        k1 = min(k0 + block, start + n_val)
+        if k0 - window >= 0:
+            model = _refit_window(model, base, u_all[k0 - window : k0], y_all[k0 - window : k0])
+        y_past = np.concatenate([history_y, out[: k0 - start]])
+        out[k0 - start : k1 - start] = _continue(model, u_all + (model.kappa - base.kappa), y_past, k0, k1)
+    details = {"window": window, "block": block}
+    if ctx.windows.change_point is not None:
+        details["change_point"] = int(ctx.windows.change_point)
+    if ctx.windows.drift_per_sample is not None:
+        details["drift_per_1000_samples"] = 1000.0 * float(ctx.windows.drift_per_sample)
+    return ExtendedModel("time_varying", "hammerstein, sliding-window re-identification", out, details)
+
+
+def _refit_window(model: HammersteinModel, base: HammersteinModel, u: np.ndarray, y: np.ndarray) -> HammersteinModel:
+    """A, B and the offset of F re-fitted on the simulation error over one window, from
+    ``model`` (``u`` is the baseline map's output; the window's simulation starts at rest)."""
+    d = model.delay
+    n, nb = model.order, model.b.size - d
+
+    def unpack(theta: np.ndarray) -> HammersteinModel:
+        b = np.concatenate([np.zeros(d), theta[n : n + nb]])
+        return replace(model, a=np.concatenate([[1.0], theta[:n]]), b=b, kappa=base.kappa + float(theta[-1]))
+
+    def simulate(theta: np.ndarray) -> np.ndarray:
+        m = unpack(theta)
+        return steady_state_filter(m.b, m.a, u + theta[-1])
+
+    theta0 = np.concatenate([model.a[1:], model.b[d:], [model.kappa - base.kappa]])
+    skip = transient_samples(model.linear.poles, u.size)
+    refined = unpack(refine(simulate, theta0, y, 15, skip))
+    return refined if refined.linear.is_stable() else model
+
+
+def _continue(model: HammersteinModel, x: np.ndarray, y_past: np.ndarray, k0: int, k1: int) -> np.ndarray:
+    """The linear block's response over samples k0..k1-1 to x, continuing from the past
+    outputs y_past (which end at sample k0 - 1)."""
+    memory = max(model.a.size, model.b.size)
+    if k0 < memory or y_past.size < memory:
+        return steady_state_filter(model.b, model.a, x[k0:k1])
+    zi = signal.lfiltic(model.b, model.a, y_past[::-1][:memory], x[k0 - memory : k0][::-1])
+    return signal.lfilter(model.b, model.a, x[k0:k1], zi=zi)[0]
+
+
+# --------------------------------------------------------------------------- periodic disturbance
+
+
+def extend_periodic_disturbance(ctx: Context) -> ExtendedModel | None:
+    """y = G[F(v)] + sum_i (c_i cos w_i k + s_i sin w_i k): the baseline plus sinusoids at the
+    residual-spectrum lines, frequencies, amplitudes and the Hammerstein part refined together
+    on the simulation error. With a separate validation record (no common time axis) the
+    amplitudes and phases are re-estimated on it (the frequencies are kept)."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    freqs0 = ctx.lines.frequencies
+    if freqs0.size == 0:
+        return None
+    v, y = s.v_est, s.y_est
+    params = HammersteinParameters(base)
+    size, nl = params.size, freqs0.size
+    eta = base.basis(v)
+    k_est = np.arange(v.size)
+
+    def waves(freqs: np.ndarray, k: np.ndarray) -> np.ndarray:
+        return np.column_stack([f(w * k) for w in freqs for f in (np.cos, np.sin)])
+
+    def simulate_theta(theta: np.ndarray) -> np.ndarray:
+        m = params.unpack(theta[:size])
+        freqs, amps = theta[size : size + nl], theta[size + nl :]
+        return steady_state_filter(m.b, m.a, eta @ m.slopes + m.kappa) + waves(freqs, k_est) @ amps
+
+    residual = y - base.simulate(v)
+    amps0 = solve_least_squares(waves(freqs0, k_est)[skip:], residual[skip:])
+    theta = refine(simulate_theta, np.concatenate([params.pack(base), freqs0, amps0]), y, 40, skip)
+    model, freqs, amps = params.unpack(theta[:size]), theta[size : size + nl], theta[size + nl :]
+    if s.continuous:
+        k_val = np.arange(s.n_est, s.n_est + s.v_val.size)
+        output = s.validation_output(model.simulate) + waves(freqs, k_val) @ amps
+    else:
+        x_val = model.simulate(s.v_val)
+        basis = waves(freqs, np.arange(s.v_val.size))
+        output = x_val + basis @ solve_least_squares(basis, s.y_val - x_val)
+    amplitudes = np.hypot(amps[0::2], amps[1::2])
+    details = {"frequencies_rad_per_sample": freqs.tolist(), "amplitudes": amplitudes.tolist(),
+               **_order_details(model)}
+    return ExtendedModel("periodic_disturbance", "hammerstein + sinusoids", output, details)
+
+
+EXTENSIONS: dict[str, Callable[[Context], ExtendedModel | None]] = {
+    "output_feedback": extend_output_feedback,
+    "parallel_path": extend_parallel_path,
+    "output_nonlinearity": extend_output_nonlinearity,
+    "backlash": extend_backlash,
+    "time_varying": extend_time_varying,
+    "unmodeled_dynamics": extend_unmodeled_dynamics,
+    "periodic_disturbance": extend_periodic_disturbance,
+}
+
+assert set(EXTENSIONS) == set(EXTENSION)

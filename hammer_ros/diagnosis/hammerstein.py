@@ -1,0 +1,204 @@
+"""The baseline: a Hammerstein model with a piecewise-linear map, fitted by PLLS (paper 001)
+and refined on the simulation error.
+
+Why this model: the piecewise-linear map in point-slope form (paper 001, eqs. 5-11) holds
+the input nonlinearities a plant actually has (saturation, dead zone, asymmetric gains,
+relays) as well as smooth ones, where a low-degree polynomial (paper 000, 003) cannot; PLLS
+gives it in one least-squares solve without assumptions on the input distribution (CLS and
+Billings-Fakhouri need a Gaussian or separable input); and the simulation-error refinement
+(``simulation_error``) removes the equation-error bias that output noise causes, so the
+baseline is the best free-run Hammerstein simulator of this structure, the quantity the
+diagnosis compares. The breakpoints sit at quantiles of the estimation input, so every
+interval holds data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..errors import IdentificationError
+from ..linear import LinearModel
+from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map
+from ..static_maps import PiecewiseLinearMap
+from .simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
+
+MAX_ORDER_SEARCH = 4
+
+
+@dataclass(frozen=True, eq=False)
+class HammersteinModel:
+    """y = B(q^-1)/A(q^-1) [F(v)] with F(v) = eta(v)^T mu + kappa (paper 001, eq. 8) on the
+    partition c with primary index r; a = [1, a_1..a_n], b = [b_0..b_n] (b_i = 0 below the
+    relative degree)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    partition: np.ndarray
+    primary: int
+    slopes: np.ndarray
+    kappa: float
+
+    @property
+    def order(self) -> int:
+        return self.a.size - 1
+
+    @property
+    def delay(self) -> int:
+        return self.linear.delay
+
+    @property
+    def linear(self) -> LinearModel:
+        return LinearModel(self.b, self.a)
+
+    @property
+    def nonlinearity(self) -> PiecewiseLinearMap:
+        return point_slope_map(self.partition, self.primary, self.slopes, self.kappa)
+
+    def basis(self, v: np.ndarray) -> np.ndarray:
+        return point_slope_basis(v, self.partition, self.primary)
+
+    def static(self, v: np.ndarray) -> np.ndarray:
+        """F(v)."""
+        return self.basis(v) @ self.slopes + self.kappa
+
+    def simulate(self, v: np.ndarray) -> np.ndarray:
+        """Free-run output from the steady state at v(0)."""
+        return steady_state_filter(self.b, self.a, self.static(v))
+
+    def parameter_count(self) -> int:
+        return self.order + np.count_nonzero(self.b) + self.slopes.size
+
+
+class HammersteinParameters:
+    """theta = [a_1..a_n, b_d..b_n without the largest one, mu, kappa (, c)]: the model's free
+    parameters for the simulation-error refinement; the largest numerator coefficient stays
+    fixed because the scale of G and F is not identifiable (paper 001, eq. 3). With
+    ``free_knots`` the breakpoints c are free too (kept sorted)."""
+
+    def __init__(self, model: HammersteinModel, free_knots: bool = False):
+        self.template = model
+        self.free_knots = free_knots
+        d = model.delay
+        self.free_b = np.arange(d, model.b.size)
+        self.fixed = d + int(np.argmax(np.abs(model.b[d:])))
+        self.free_b = self.free_b[self.free_b != self.fixed]
+        self.size = model.order + self.free_b.size + model.slopes.size + 1 + (model.partition.size if free_knots else 0)
+
+    def pack(self, model: HammersteinModel) -> np.ndarray:
+        knots = model.partition if self.free_knots else []
+        return np.concatenate([model.a[1:], model.b[self.free_b], model.slopes, [model.kappa], knots])
+
+    def unpack(self, theta: np.ndarray) -> HammersteinModel:
+        n, nb, ns = self.template.order, self.free_b.size, self.template.slopes.size
+        b = self.template.b.copy()
+        b[self.free_b] = theta[n : n + nb]
+        rest = theta[n + nb + ns + 1 :]
+        partition = np.sort(rest) if self.free_knots else self.template.partition
+        return replace(self.template, a=np.concatenate([[1.0], theta[:n]]), b=b, partition=partition,
+                       slopes=np.asarray(theta[n + nb : n + nb + ns]), kappa=float(theta[n + nb + ns]))
+
+
+def quantile_partition(v: np.ndarray, count: int) -> np.ndarray:
+    """``count`` breakpoints at the quantiles i/(count+1) of v, without duplicates and without
+    those that would leave an interval of paper 001's eq. 6 empty."""
+    knots = np.unique(np.quantile(np.asarray(v, dtype=float), np.arange(1, count + 1) / (count + 1)))
+    return drop_empty_intervals(v, knots)
+
+
+def default_breakpoints(samples: int) -> int:
+    """3 breakpoints for short records, up to 8 from 2400 samples on (about 300 per interval)."""
+    return int(np.clip(samples // 300, 3, 8))
+
+
+def plls_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int, partition: np.ndarray) -> HammersteinModel:
+    """PLLS of paper 001 sec. 4.1 (equation error), with a stabilised denominator."""
+    est = plls(v, y, order, delay, "hammerstein", partition=partition)
+    f, primary = est.nonlinearity, est.primary_index
+    return HammersteinModel(stabilised_denominator(est.linear.a), est.linear.b, partition, primary,
+                            f.slopes, float(f.values[primary - 1]))
+
+
+def transient_samples(model_poles: np.ndarray, samples: int) -> int:
+    """Samples left out of a fit's cost at the start of a record (the unknown initial state
+    decays in them): the settling time of the slowest pole, at most a fifth of the record."""
+    return settling_samples(model_poles, cap=max(samples // 5, 1))
+
+
+def refine_hammerstein(model: HammersteinModel, v: np.ndarray, y: np.ndarray, iterations: int = 30,
+                       free_knots: bool = False) -> HammersteinModel:
+    """The model minimising the simulation error on (v, y), started from ``model``."""
+    params = HammersteinParameters(model, free_knots)
+    eta = model.basis(v)
+
+    def simulate(theta: np.ndarray) -> np.ndarray:
+        m = params.unpack(theta)
+        basis = m.basis(v) if free_knots else eta
+        return steady_state_filter(m.b, m.a, basis @ m.slopes + m.kappa)
+
+    skip = transient_samples(model.linear.poles, y.size)
+    refined = params.unpack(refine(simulate, params.pack(model), y, iterations, skip))
+    if not refined.linear.is_stable():
+        refined = replace(refined, a=stabilised_denominator(refined.a))
+    return refined
+
+
+FREE_KNOT_SAMPLES = 20000  # the breakpoints are refined on at most this many (the last) samples
+
+
+def fit_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int,
+                    partition: np.ndarray | None = None, free_knots: bool = True) -> HammersteinModel:
+    """PLLS estimate on a quantile partition, refined on the simulation error, first with the
+    breakpoints fixed, then (``free_knots``) with the breakpoints free as well, so that a kink,
+    a dead zone or a relay jump is not smeared over the gap between two quantiles."""
+    if partition is None:
+        partition = quantile_partition(v, default_breakpoints(v.size))
+    model = refine_hammerstein(plls_hammerstein(v, y, order, delay, partition), v, y)
+    if not free_knots:
+        return model
+    tail = slice(max(0, v.size - FREE_KNOT_SAMPLES), None)
+    model = refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True)
+    return refine_hammerstein(model, v, y, iterations=10) if tail.start else model
+
+
+def bic(y: np.ndarray, y_sim: np.ndarray, parameters: int) -> float:
+    """Bayesian information criterion N ln(mean squared error) + k ln N."""
+    n = y.size
+    mse = float(np.mean((y - y_sim) ** 2))
+    return n * np.log(max(mse, 1e-300)) + parameters * np.log(n)
+
+
+def equation_error_bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> float:
+    """BIC of the one-step equation error A(q) y - B(q) F(v) (for the choice of the delay)."""
+    skip = model.order
+    e = np.convolve(y, model.a)[: y.size] - np.convolve(model.static(v), model.b)[: y.size]
+    return bic(np.zeros(y.size - skip), e[skip:], model.parameter_count())
+
+
+def select_delay(v: np.ndarray, y: np.ndarray, order: int, partition: np.ndarray) -> int:
+    """Relative degree 0..min(3, order) with the smallest equation-error BIC."""
+    scores = {}
+    for d in range(0, min(3, order) + 1):
+        try:
+            scores[d] = equation_error_bic(plls_hammerstein(v, y, order, d, partition), v, y)
+        except (IdentificationError, np.linalg.LinAlgError, ValueError):
+            continue
+    if not scores:
+        raise IdentificationError("no Hammerstein model could be fitted to the estimation data")
+    return min(scores, key=scores.get)
+
+
+def fit_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None) -> HammersteinModel:
+    """The baseline: the nominal order when given (else the order 1..4 with the smallest
+    simulation-error BIC), the given delay (else the one with the smallest equation-error BIC)."""
+    partition = quantile_partition(v, default_breakpoints(v.size))
+    orders = [order] if order else list(range(1, MAX_ORDER_SEARCH + 1))
+    best, best_score = None, np.inf
+    for n in orders:
+        d = select_delay(v, y, n, partition) if delay is None else min(delay, n)
+        model = fit_hammerstein(v, y, n, d, partition)
+        score = bic(y, model.simulate(v), model.parameter_count())
+        if score < best_score:
+            best, best_score = model, score
+    return best

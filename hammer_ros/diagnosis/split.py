@@ -1,0 +1,71 @@
+"""Estimation and validation data, and the free-run simulation of a model on the validation part."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import UsageError
+
+MIN_SAMPLES = 60
+
+
+@dataclass(frozen=True, eq=False)
+class Split:
+    """(v_est, y_est) to fit on, (v_val, y_val) to validate on. ``continuous``: the validation
+    samples follow the estimation samples in time (one record split in two), so a model is
+    simulated over both and its validation output continues from its own state; otherwise
+    (a separate validation record) the simulation starts at rest at v_val(0)."""
+
+    v_est: np.ndarray
+    y_est: np.ndarray
+    v_val: np.ndarray
+    y_val: np.ndarray
+    continuous: bool
+
+    @property
+    def n_est(self) -> int:
+        return self.v_est.size
+
+    @property
+    def v_all(self) -> np.ndarray:
+        return np.concatenate([self.v_est, self.v_val])
+
+    @property
+    def y_all(self) -> np.ndarray:
+        return np.concatenate([self.y_est, self.y_val])
+
+    def validation_output(self, simulate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """The model's free-run output on the validation samples."""
+        if self.continuous:
+            return simulate(self.v_all)[self.n_est :]
+        return simulate(self.v_val)
+
+    def estimation_tail(self, samples: int) -> Split:
+        """The same split with only the last ``samples`` estimation samples (to bound the cost
+        of slow fits on long records); validation unchanged."""
+        if samples >= self.n_est:
+            return self
+        return Split(self.v_est[-samples:], self.y_est[-samples:], self.v_val, self.y_val, self.continuous)
+
+
+def split_record(v: np.ndarray, y: np.ndarray, fraction: float = 0.7) -> Split:
+    """The first ``fraction`` of the record for estimation, the rest for validation."""
+    if not 0.0 < fraction < 1.0:
+        raise UsageError(f"--split: the estimation fraction must be between 0 and 1 (got {fraction})")
+    v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
+    cut = int(round(fraction * v.size))
+    split = Split(v[:cut], y[:cut], v[cut:], y[cut:], continuous=True)
+    check_split(split)
+    return split
+
+
+def check_split(split: Split) -> None:
+    for part, n in (("estimation", split.n_est), ("validation", split.v_val.size)):
+        if n < MIN_SAMPLES:
+            raise UsageError(f"the {part} part has {n} samples; the diagnosis needs at least {MIN_SAMPLES}")
+    for name, x in (("input", split.v_est), ("output", split.y_est)):
+        if np.ptp(x) == 0.0:
+            raise UsageError(f"the {name} is constant over the estimation part: nothing to identify")

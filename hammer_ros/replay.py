@@ -1,0 +1,204 @@
+"""``hammer-ros replay``: a bag through the same streaming engine as the live node.
+
+As fast as possible by default (messages are buffered and added to the engine in vectorised
+batches between solves); ``--rate R`` paces the bag at R x real time and publishes the results
+on the live ROS 2 graph under the node name ``hammer_ros`` (the node's topics, so the same
+dashboard works); ``--out`` writes every result (``outputs``) into an MCAP file.
+
+Solves happen every 1 / solve_rate seconds of bag time (``--solve-rate``, else the config's
+``solve_rate``, else 2 Hz) and once at the end of the bag. Settings: command-line options, else
+the ``--config`` parameters, else the engine defaults (tau_max: the method's batch default, so
+that a replay with a window holding the whole bag equals ``identify`` on it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from .bag_io import (
+    FLUSH_SAMPLES,
+    ResultWriter,
+    bag_message_counts,
+    check_fields,
+    check_topics,
+    engine_config_from_params,
+    iter_bag_samples,
+    load_msg_config,
+    node_topic,
+    stream_specs,
+)
+from .errors import IdentificationError, UsageError
+from .outputs import diagnostics_message, message_class, result_messages, to_ros_message
+from .streaming import CLS_STRUCTURES, EngineConfig, SolveOutcome, StreamingEngine
+
+DEFAULT_SOLVE_RATE = 2.0
+NODE_NAME = "hammer_ros"
+
+
+def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tuple[EngineConfig, float]:
+    """(engine config, solve rate) from the options, the config parameters and the defaults."""
+    config = engine_config_from_params(params, source)
+    cli = {"method": args.method, "order": args.order, "delay": args.delay, "mu": args.mu, "poly": args.poly,
+           "partition": args.partition, "tau_max": args.tau_max, "window": args.window,
+           "sample_rate": args.sample_rate, "forgetting": args.forgetting, "interpolation": args.interpolation}
+    changes = {k: v for k, v in cli.items() if v is not None}
+    method = changes.get("method", config.method)
+    if "tau_max" not in changes and "tau_max" not in params and method in CLS_STRUCTURES:
+        from .correlation_least_squares import DEFAULT_MU, default_tau_max
+
+        mu = 1 if method == "cls-arx" else changes.get("mu", config.mu) or DEFAULT_MU
+        changes["tau_max"] = default_tau_max(changes.get("order", config.order), mu)
+    try:
+        config = EngineConfig(**{**config.__dict__, **changes}).validated()
+    except UsageError as exc:
+        name, reason = str(exc).split(":", 1)
+        raise UsageError(f"--{name.replace('_', '-')}:{reason}") from None
+    solve_rate = args.solve_rate if args.solve_rate is not None else float(params.get("solve_rate", DEFAULT_SOLVE_RATE))
+    if not (math.isfinite(solve_rate) and solve_rate > 0):
+        raise UsageError(f"--solve-rate: must be > 0 (got {solve_rate})")
+    return config, solve_rate
+
+
+class Progress:
+    """A one-line progress bar on stderr, redrawn at most 10 times per second."""
+
+    def __init__(self, total: int, stream=None) -> None:
+        self.total, self.stream, self.last = max(total, 1), stream or sys.stderr, 0.0
+
+    def update(self, done: int, samples: int, solves: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self.last < 0.1:
+            return
+        self.last = now
+        fraction = min(done / self.total, 1.0)
+        bar = "#" * int(30 * fraction)
+        self.stream.write(f"\rreplay [{bar:<30}] {100 * fraction:5.1f} %  {samples} samples  {solves} solves")
+        self.stream.flush()
+
+    def close(self) -> None:
+        self.stream.write("\n")
+        self.stream.flush()
+
+
+class LivePublisher:
+    """Publishes result dicts on the live ROS 2 graph (rclpy imported only here)."""
+
+    def __init__(self, node_name: str = NODE_NAME) -> None:
+        from .ros_env import prepare_ros_environment
+
+        prepare_ros_environment()
+        import rclpy
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+        self._rclpy = rclpy
+        rclpy.init(args=None)
+        self.node = rclpy.create_node(node_name)
+        self._latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._publishers: dict[str, object] = {}
+
+    def publish(self, topic: str, type_name: str, message: dict) -> None:
+        if not self._rclpy.ok():  # SIGINT/SIGTERM shut the context down: stop like Ctrl-C (exit 130)
+            raise KeyboardInterrupt
+        publisher = self._publishers.get(topic)
+        if publisher is None:
+            qos = self._latched if topic == "~/model" else 10
+            publisher = self._publishers[topic] = self.node.create_publisher(message_class(type_name), topic, qos)
+        publisher.publish(to_ros_message(type_name, message))
+
+    def ok(self) -> bool:
+        return bool(self._rclpy.ok())
+
+    def close(self) -> None:
+        self.node.destroy_node()
+        if self._rclpy.ok():
+            self._rclpy.shutdown()
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_msg_config(args.config) if args.config else {}
+    source = str(args.config or "config")
+    excitation, response = stream_specs(args.input, args.output, params, source)
+    config, solve_rate = replay_settings(args, params, source)
+    if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
+        raise UsageError(f"--rate: must be > 0 (got {args.rate})")
+    check_topics(args.bag, (excitation, response))
+    check_fields(args.bag, (excitation, response))  # every user mistake before any output
+    counts = bag_message_counts(args.bag)
+    total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
+    samples = iter_bag_samples(args.bag, excitation, response)
+    engine = StreamingEngine(config)
+    writer = ResultWriter(args.out) if args.out else None
+    publisher = None
+    progress = Progress(total)
+    started = time.perf_counter()
+    last_ok: SolveOutcome | None = None
+    last: SolveOutcome | None = None
+    frame_id = str(params.get("frame_id", ""))
+    try:
+        publisher = LivePublisher() if args.rate is not None else None
+
+        def solve(bag_time: float) -> None:
+            nonlocal last_ok, last
+            engine.flush()
+            last = engine.solve()
+            last_ok = last if last.ok else last_ok
+            stamp = last.stamp if math.isfinite(last.stamp) else bag_time
+            messages = result_messages(last, stamp, frame_id)
+            messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray",
+                             diagnostics_message(engine.stats, last, stamp, NODE_NAME)))
+            for topic, type_name, message in messages:
+                if writer:
+                    writer.write(node_topic(topic, NODE_NAME), type_name, message, round(stamp * 1e9))
+                if publisher:
+                    publisher.publish(topic, type_name, message)
+
+        bag_start = next_solve = None
+        done = 0
+        for sample in samples:
+            if bag_start is None:
+                bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
+            if publisher:  # pace: bag time / rate = wall time since the start
+                wait = (sample.stamp - bag_start) / args.rate - (time.perf_counter() - started)
+                if wait > 0.005:
+                    time.sleep(wait)
+                if not publisher.ok():
+                    raise KeyboardInterrupt
+            if sample.stamp >= next_solve:
+                solve(sample.stamp)
+                next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
+            engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
+            if engine.buffered >= FLUSH_SAMPLES:
+                engine.flush()
+            done += 1
+            progress.update(done, engine.stats.aligned, engine.stats.solves)
+        solve(float("nan") if bag_start is None else sample.stamp)
+        progress.update(done, engine.stats.aligned, engine.stats.solves, force=True)
+    finally:
+        progress.close()
+        if writer:
+            writer.close()
+        if publisher:
+            publisher.close()
+    wall = time.perf_counter() - started
+    if last_ok is None:
+        reason = last.reason if last else "no messages"
+        raise IdentificationError(f"{args.bag}: no model identified ({reason})")
+    doc = dict(last_ok.doc)
+    doc.update(samples=int(engine.stats.aligned), solves=int(engine.stats.solves), wall_s=round(wall, 4))
+    if args.json:
+        json.dump(doc, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        from .cli import format_model
+
+        rate = engine.stats.aligned / wall if wall > 0 else float("inf")
+        print(format_model(doc))
+        print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"
+              + (f"; {writer.count} messages -> {Path(args.out)}" if writer else ""))
+    return 0

@@ -1,0 +1,120 @@
+"""Sample stamps for messages that carry no stamp (std_msgs/Float64, Float64MultiArray, ...).
+
+The receive time of such a message is its only clue, and on a loaded machine it jitters by more
+than a sample period (messages arrive late and in bursts), so putting each sample at its receive
+time would repeat and skip samples on the grid and tear the excitation apart from the response.
+Instead the samples of each stream are *counted*:
+
+    stamp(i) = base + i / fs,   base = min over the last ``horizon`` seconds of (r_m - i_m / fs),
+
+where r_m is the receive time of message m and i_m the index of its last sample (the batch
+convention: the last sample of a message is the newest one). ``base`` is set by the least
+delayed message, so jitter and bursts never move a sample. Stamps are rounded to one grid shared
+by all streams (anchored at the first stamp issued): an excitation and a response published
+together land on the same grid point even when they arrive a fraction of a period apart.
+
+A stall of the subscriber (messages queued, then delivered in a burst) moves nothing. A receive
+time more than ``resync`` seconds after the count predicts (the publisher paused, or samples were
+lost upstream) or before it (the publisher runs faster than fs) restarts the count of that stream
+(``restarts``). A shorter publisher pause is removed from the stream (the samples stay contiguous,
+which is exact when the plant paused too) until the ``horizon`` forgets the pre-pause messages;
+then the stamps jump forward and the engine sees a gap.
+
+With fs unknown (0), the rate is inferred from the first ``infer_seconds`` of the first stream:
+the least-squares slope of the sample count over the receive time, rounded to 3 significant
+digits; the samples seen meanwhile are not stamped (``stamps`` returns None).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+INFER_SECONDS = 2.0
+INFER_MIN_MESSAGES = 16
+
+
+def _round_significant(x: float, digits: int = 3) -> float:
+    return round(x, digits - 1 - int(math.floor(math.log10(abs(x)))))
+
+
+class _CountedStream:
+    def __init__(self) -> None:
+        self.count = 0  # samples stamped since the last (re)start
+        self.history: deque[tuple[float, float]] = deque()  # (receive time, base candidate), candidates increasing
+
+    def restart(self) -> None:
+        self.count = 0
+        self.history.clear()
+
+
+class ArrivalStamper:
+    """Stamps on one grid of rate ``rate`` (Hz, 0 = infer) for unstamped streams, by name."""
+
+    def __init__(self, rate: float = 0.0, horizon: float = 2.0, resync: float = 0.5) -> None:
+        self.rate = float(rate)
+        self.horizon = horizon
+        self.resync = resync
+        self.restarts = 0
+        self._streams: dict[str, _CountedStream] = {}
+        self._anchor: float | None = None
+        self._inference: list[tuple[float, int]] = []  # (receive time, cumulative samples) of one stream
+        self._inference_stream: str | None = None
+
+    def set_rate(self, rate: float) -> None:
+        """A new grid rate (0 = infer again): every stream restarts its count."""
+        self.__init__(rate, self.horizon, self.resync)
+
+    def stamps(self, stream: str, receive_time: float, count: int) -> np.ndarray | None:
+        """Stamps of the ``count`` samples of one message of ``stream`` received at
+        ``receive_time`` (s), oldest first; None while the rate is still being inferred."""
+        first = self.first_stamp(stream, receive_time, count)
+        return None if first is None else first + np.arange(count) / self.rate
+
+    def first_stamp(self, stream: str, receive_time: float, count: int) -> float | None:
+        """The stamp of the first of the ``count`` samples of one message (the others follow at
+        1/rate); None while the rate is still being inferred. Pure float arithmetic: this runs
+        once per received message."""
+        if self.rate <= 0 and not self._infer(stream, receive_time, count):
+            return None
+        s = self._streams.get(stream)
+        if s is None:
+            s = self._streams[stream] = _CountedStream()
+        period = 1.0 / self.rate
+        candidate = receive_time - (s.count + count - 1) * period
+        history = s.history
+        if history and abs(candidate - history[0][1]) > self.resync:
+            self.restarts += 1
+            s.restart()
+            candidate = receive_time - (count - 1) * period
+        while history and history[-1][1] >= candidate:
+            history.pop()
+        history.append((receive_time, candidate))
+        while history[0][0] < receive_time - self.horizon:
+            history.popleft()
+        raw = history[0][1] + s.count * period
+        s.count += count
+        if self._anchor is None:
+            self._anchor = raw
+        return self._anchor + round((raw - self._anchor) * self.rate) * period
+
+    def _infer(self, stream: str, receive_time: float, count: int) -> bool:
+        if self._inference_stream is None:
+            self._inference_stream = stream
+        if stream != self._inference_stream:
+            return False
+        total = (self._inference[-1][1] if self._inference else 0) + count
+        self._inference.append((receive_time, total))
+        t = np.array([r for r, _ in self._inference])
+        if t.size < INFER_MIN_MESSAGES or t[-1] - t[0] < INFER_SECONDS:
+            return False
+        n = np.array([c for _, c in self._inference], dtype=float)
+        slope = float(np.polyfit(t - t[0], n, 1)[0])
+        self._inference.clear()
+        if not (math.isfinite(slope) and slope > 0):
+            self._inference_stream = None
+            return False
+        self.rate = _round_significant(slope)
+        return False  # this message only completes the inference; stamping starts with the next one

@@ -1,0 +1,662 @@
+"""The streaming identification engine (pure numpy; the ROS node and ``replay`` are thin adapters).
+
+Pipeline, per batch of timestamped samples of either stream:
+
+1. **Screening.** Non-finite values or stamps are skipped (``nan_skipped``). A stamp equal to
+   the newest accepted stamp of its stream is a ``duplicate``, an older one is ``late``; both are
+   skipped (the grid only moves forward).
+2. **Alignment** on one grid. With ``sample_rate`` fs > 0 the grid is t_k = t_a + k / fs,
+   anchored at the first excitation stamp t_a (re-anchored after an excitation gap), so a
+   uniformly sampled command lands on it exactly. With ``sample_rate`` 0 the excitation stamps
+   themselves are the grid (the command clocks the identification; no drift against a
+   slightly-off nominal rate) and fs, estimated from the median spacing of the first 16
+   excitation stamps, only sets the tolerances. A grid point is emitted once BOTH streams have
+   a sample at or after it; its values are the zero-order hold (last sample with stamp
+   <= t_k + tol) or the linear interpolation of each stream, tol = 0.01 / fs.
+3. **Gap policy.** Consecutive stamps of one stream further apart than ``max_gap`` (default
+   5 / fs) are a gap: the grid points inside the gap are not emitted and the window restarts
+   empty after it (``gaps`` counts the restarts). Samples on both sides of a gap are never
+   mixed in one lag product or regression row; the last model stays valid until the new window
+   is ``min_fill`` full again.
+4. **Correlation sums** over the window of the last W aligned samples (paper 000 eq. 8 and
+   Remark 2): with L = min(W, samples) and T = tau_max, the centres k = T .. L-1-T give
+   N + 1 = L - 2T products per lag,
+
+       phi_vv(tau)  = 1/(N+1) sum_k v(k) v(k-tau)
+       phi_yv(tau)  = 1/(N+1) sum_k y(k) v(k-tau)
+       phi_yvv(tau) = 1/(N+1) sum_k y(k) v(k-tau)^2      (second order, paper 003 eq. 21)
+
+   for tau = -T..T: exactly ``correlation.cross_correlation`` on the window. A new sample
+   completes the centre k = newest - T (O(T) products); the window's oldest centre is removed
+   exactly (subtracting its products). Batches are vectorised (one matrix product per chunk).
+   Every W samples the sums are recomputed from the raw window, which bounds the rounding
+   drift of the add/subtract recursion.
+   With ``forgetting`` lambda < 1 the sums are instead exponentially weighted over every centre
+   since the window (re)started: weight lambda^(c - k) for centre k when the newest centre is c,
+   divided by the total weight (``correlation.weighted_cross_correlation`` is the batch form).
+5. **Solve** on an immutable snapshot (``solve_snapshot``, safe in a worker thread): CLS ARX /
+   mu-Markov step 1 on the correlation sums, step 2 on the raw window; any other method through
+   ``methods.identify`` on the raw window.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields, replace
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from .errors import HammerRosError, UsageError
+from .methods import METHODS, IdentifyOptions, identify
+from .result import IdentificationResult
+
+INFER_SAMPLES = 16  # excitation stamps used to infer the sample rate
+GRID_TOLERANCE = 0.01  # of a sample period: stamps this close to a grid point are on it
+PE_CONDITION_LIMIT = 1e8  # cond(R) above this: input not persistently exciting
+CHUNK = 4096  # aligned samples per vectorised update (bounds the temporary lag matrix)
+CLS_STRUCTURES = {"cls-arx": "arx", "cls-markov": "markov"}
+STREAMS = ("excitation", "response")
+
+
+@dataclass(frozen=True)
+class EngineConfig:
+    """Configuration of the engine; field names are the node's parameter names."""
+
+    sample_rate: float = 0.0  # Hz of the common grid; 0 = infer from the excitation stamps
+    window: int = 4000  # W: samples in the sliding window (also the raw window kept)
+    forgetting: float = 1.0  # 1.0 = exact sliding window; < 1 = exponential forgetting
+    tau_max: int = 60
+    method: str = "cls-markov"  # any methods.METHODS name except semiparametric
+    order: int = 3
+    delay: int = 1
+    mu: int | None = None
+    poly: int = 3
+    partition: tuple[float, ...] | None = None
+    interpolation: str = "zoh"  # or "linear"
+    max_gap: float = 0.0  # seconds; 0 = 5 / sample_rate
+    min_fill: float = 0.25  # fraction of the window needed before the first solve
+
+    def validated(self) -> EngineConfig:
+        """self, or a UsageError naming the first invalid field and why."""
+        def bad(name: str, why: str) -> UsageError:
+            return UsageError(f"{name}: {why} (got {getattr(self, name)!r})")
+
+        if not (math.isfinite(self.sample_rate) and self.sample_rate >= 0):
+            raise bad("sample_rate", "must be >= 0 Hz (0 = infer)")
+        if self.tau_max < 1:
+            raise bad("tau_max", "must be >= 1")
+        if self.window < max(16, 2 * self.tau_max + 2):
+            raise bad("window", f"must be >= max(16, 2 tau_max + 2) = {max(16, 2 * self.tau_max + 2)} samples")
+        if not 0.0 < self.forgetting <= 1.0:
+            raise bad("forgetting", "must be in (0, 1]")
+        if self.method not in METHODS:
+            raise bad("method", f"unknown method (choose from {', '.join(METHODS)})")
+        if self.method == "semiparametric":
+            raise bad("method", "semiparametric needs a separate single-harmonic record; not available streaming")
+        if self.order < 1:
+            raise bad("order", "must be >= 1")
+        if not 0 <= self.delay <= self.order:
+            raise bad("delay", f"must be in 0..order ({self.order})")
+        if self.mu is not None and self.mu < 1:
+            raise bad("mu", "must be >= 1")
+        if self.poly < 1:
+            raise bad("poly", "must be >= 1")
+        if self.partition is not None and (len(self.partition) == 0 or np.any(np.diff(self.partition) <= 0)):
+            raise bad("partition", "breakpoints must be strictly increasing")
+        if self.interpolation not in ("zoh", "linear"):
+            raise bad("interpolation", "must be 'zoh' or 'linear'")
+        if not (math.isfinite(self.max_gap) and self.max_gap >= 0):
+            raise bad("max_gap", "must be >= 0 s (0 = 5 sample periods)")
+        if not 0.0 < self.min_fill <= 1.0:
+            raise bad("min_fill", "must be in (0, 1]")
+        return self
+
+    def identify_options(self) -> IdentifyOptions:
+        return IdentifyOptions(order=self.order, delay=self.delay, mu=self.mu, poly=self.poly,
+                               partition=self.partition, tau_max=self.tau_max)
+
+
+@dataclass
+class EngineStats:
+    """Counters of the engine (monotonic except ``window_fill``/``window_samples``)."""
+
+    received_excitation: int = 0
+    received_response: int = 0
+    aligned: int = 0
+    nan_skipped: int = 0
+    late: int = 0
+    duplicate: int = 0
+    unstamped: int = 0  # batch messages that could not be placed (rate still unknown)
+    overflow: int = 0  # pending samples dropped because the other stream stalled
+    gaps: int = 0
+    window_samples: int = 0
+    window_fill: float = 0.0
+    sample_rate: float = 0.0  # grid rate in use (configured or inferred), 0 = not yet known
+    solves: int = 0
+    solve_errors: int = 0
+    first_stamp: dict = field(default_factory=dict)  # stream -> first accepted stamp
+    last_stamp: dict = field(default_factory=dict)  # stream -> newest accepted stamp
+    accepted: dict = field(default_factory=lambda: {s: 0 for s in STREAMS})
+
+    def rate(self, stream: str) -> float:
+        """Accepted samples per second of stamp time for ``stream`` ("excitation", "response")."""
+        span = self.last_stamp.get(stream, 0.0) - self.first_stamp.get(stream, 0.0)
+        return (self.accepted[stream] - 1) / span if span > 0 else 0.0
+
+    @property
+    def aligned_rate(self) -> float:
+        """Grid samples per second of stamp time since the first excitation sample."""
+        span = self.last_stamp.get("excitation", 0.0) - self.first_stamp.get("excitation", 0.0)
+        return self.aligned / span if span > 0 else 0.0
+
+    def as_dict(self) -> dict:
+        doc = {k: v for k, v in asdict(self).items() if k not in ("first_stamp", "last_stamp", "accepted")}
+        doc.update(received_rate_excitation=self.rate("excitation"), received_rate_response=self.rate("response"),
+                   aligned_rate=self.aligned_rate)
+        return doc
+
+    def copy(self) -> EngineStats:
+        return replace(self, first_stamp=dict(self.first_stamp), last_stamp=dict(self.last_stamp),
+                       accepted=dict(self.accepted))
+
+
+@dataclass(frozen=True, eq=False)
+class EngineSnapshot:
+    """Everything a solve needs, copied out of the engine (immutable by convention)."""
+
+    config: EngineConfig
+    phi_vv: np.ndarray  # normalised correlations, index tau + tau_max
+    phi_yv: np.ndarray
+    phi_yvv: np.ndarray
+    weight: float  # number of products N + 1 (sliding window) or total weight (forgetting)
+    v: np.ndarray  # raw window (aligned samples, oldest first)
+    y: np.ndarray
+    stamp: float  # grid time of the newest sample (nan before the first)
+    stats: EngineStats
+
+
+@dataclass(frozen=True, eq=False)
+class SolveOutcome:
+    """The result of one solve; ``reason`` says why when not ``ok``."""
+
+    ok: bool
+    reason: str
+    result: IdentificationResult | None
+    doc: dict | None  # the identify --json document (contract keys)
+    condition_number: float  # of the input autocorrelation matrix (persistent excitation)
+    solve_seconds: float
+    samples: int
+    stamp: float
+
+
+class _Stream:
+    """Accepted samples of one stream not yet consumed by the grid (plus the one before)."""
+
+    def __init__(self) -> None:
+        self.t = np.empty(0)
+        self.x = np.empty(0)
+        self.last = -np.inf
+        self.previous_message: float | None = None
+
+    def append(self, t: np.ndarray, x: np.ndarray, cap: int) -> int:
+        self.t = np.concatenate([self.t, t])
+        self.x = np.concatenate([self.x, x])
+        self.last = float(self.t[-1]) if self.t.size else self.last
+        dropped = max(0, self.t.size - cap)
+        if dropped:
+            self.drop(dropped)
+        return dropped
+
+    def drop(self, count: int) -> None:
+        self.t, self.x = self.t[count:], self.x[count:]
+
+    def clear(self) -> None:
+        self.t, self.x = np.empty(0), np.empty(0)
+
+    def segment_end(self, index: int, max_gap: float) -> tuple[float, float | None]:
+        """(stamp where the segment holding sample ``index`` ends, stamp of the first sample after
+        the gap that ends it, or None while the segment is still open)."""
+        jumps = np.flatnonzero(np.diff(self.t[index:]) > max_gap)
+        if jumps.size == 0:
+            return float(self.t[-1]), None
+        j = index + int(jumps[0])
+        return float(self.t[j]), float(self.t[j + 1])
+
+    def values_at(self, grid: np.ndarray, tol: float, interpolation: str) -> np.ndarray:
+        if interpolation == "linear":
+            return np.interp(grid, self.t, self.x)
+        return self.x[np.searchsorted(self.t, grid + tol, side="right") - 1]
+
+
+def _lag_products(v: np.ndarray, y: np.ndarray, tau_max: int, weights: np.ndarray | None = None) -> np.ndarray:
+    """Sums over the centres k = T..len-1-T of [v(k), y(k), y(k)] times [v, v, v^2](k - tau),
+    tau = -T..T, as a (3, 2T+1) array (optionally weighted per centre)."""
+    lag = 2 * tau_max + 1
+    rows = v.size - 2 * tau_max
+    centre = np.stack([v[tau_max : tau_max + rows], y[tau_max : tau_max + rows]])
+    if weights is not None:
+        centre = centre * weights
+    first = centre @ sliding_window_view(v, lag)
+    second = centre[1] @ sliding_window_view(v * v, lag)
+    return np.vstack([first, second])[:, ::-1]
+
+
+class _CorrelationWindow:
+    """Raw window of aligned samples and the recursive correlation sums over it."""
+
+    def __init__(self, window: int, tau_max: int, forgetting: float) -> None:
+        self.window, self.tau_max, self.forgetting = window, tau_max, forgetting
+        self.capacity = window + CHUNK
+        self.v = np.empty(self.capacity)
+        self.y = np.empty(self.capacity)
+        self.reset()
+
+    def reset(self) -> None:
+        self.count = 0  # samples since the (re)start of the segment
+        self.stored = 0  # samples held in self.v[:stored] (the newest ones)
+        self.window_start = 0  # segment index of the window's oldest sample
+        self.sums = np.zeros((3, 2 * self.tau_max + 1))
+        self.weight = 0.0
+        self.centres = (0, -1)  # [lo, hi] segment indices of the centres in the sums
+        self.since_resync = 0
+
+    def _local(self, start: int, stop: int) -> slice:
+        """Slice of the stored arrays holding segment indices start..stop-1."""
+        offset = self.count - self.stored
+        return slice(start - offset, stop - offset)
+
+    def _products(self, lo: int, hi: int, weights: np.ndarray | None = None) -> np.ndarray:
+        if hi < lo:
+            return np.zeros_like(self.sums)
+        s = self._local(lo - self.tau_max, hi + self.tau_max + 1)
+        return _lag_products(self.v[s], self.y[s], self.tau_max, weights)
+
+    def _target_centres(self) -> tuple[int, int]:
+        return self.window_start + self.tau_max, self.count - 1 - self.tau_max
+
+    def add(self, v: np.ndarray, y: np.ndarray) -> None:
+        for start in range(0, v.size, CHUNK):
+            self._add_chunk(v[start : start + CHUNK], y[start : start + CHUNK])
+
+    def _add_chunk(self, v: np.ndarray, y: np.ndarray) -> None:
+        m = v.size
+        if self.stored + m > self.capacity:
+            keep = min(self.stored, self.count - self.window_start)
+            self.v[:keep] = self.v[self.stored - keep : self.stored]
+            self.y[:keep] = self.y[self.stored - keep : self.stored]
+            self.stored = keep
+        self.v[self.stored : self.stored + m] = v
+        self.y[self.stored : self.stored + m] = y
+        self.stored += m
+        self.count += m
+        self.window_start = max(self.window_start, self.count - self.window)
+        if self.forgetting < 1.0:
+            self._update_forgetting()
+        else:
+            self._update_sliding(m)
+
+    def _update_sliding(self, m: int) -> None:
+        lo, hi = self.centres
+        new_lo, new_hi = self._target_centres()
+        self.since_resync += m
+        if new_hi < new_lo:
+            self.sums[:] = 0.0
+        elif hi < lo or new_lo > hi or self.since_resync >= self.window:
+            self.sums = self._products(new_lo, new_hi)
+            self.since_resync = 0
+        else:
+            self.sums += self._products(hi + 1, new_hi) - self._products(lo, new_lo - 1)
+        self.centres = (new_lo, new_hi)
+        self.weight = float(max(0, new_hi - new_lo + 1))
+
+    def _update_forgetting(self) -> None:
+        """Every centre since the (re)start is weighted in, also when a chunk exceeds the window."""
+        lo, hi = self.centres
+        new_hi = self.count - 1 - self.tau_max
+        first = hi + 1 if hi >= lo else self.tau_max
+        if new_hi < first:
+            return
+        decay = self.forgetting ** np.arange(new_hi - first, -1, -1)
+        shrink = self.forgetting ** (new_hi - hi) if hi >= lo else 0.0
+        self.sums = shrink * self.sums + self._products(first, new_hi, decay)
+        self.weight = shrink * self.weight + float(decay.sum())
+        self.centres = (lo if hi >= lo else first, new_hi)
+
+    def rebuild(self, window: int, tau_max: int, forgetting: float) -> None:
+        """New W / tau_max / lambda: keep the newest samples, recompute the sums from them."""
+        keep = min(self.stored, window, self.count - self.window_start)
+        v, y = self.v[self.stored - keep : self.stored].copy(), self.y[self.stored - keep : self.stored].copy()
+        self.__init__(window, tau_max, forgetting)
+        self.add(v, y)
+
+    def raw(self) -> tuple[np.ndarray, np.ndarray]:
+        s = self._local(self.window_start, self.count)
+        return self.v[s].copy(), self.y[s].copy()
+
+    def correlations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        scale = 1.0 / self.weight if self.weight > 0 else 0.0
+        return self.sums[0] * scale, self.sums[1] * scale, self.sums[2] * scale
+
+
+class StreamAligner:
+    """Screening, sample-rate inference, grid alignment and gap detection of the two streams
+    (steps 1-3 of the module docstring). Aligned runs go to ``sink(grid, v, y)``; ``restart()``
+    is called when a gap ends the current gap-free segment. Counters go to ``stats``."""
+
+    def __init__(self, config: EngineConfig, stats: EngineStats,
+                 sink: Callable[[np.ndarray, np.ndarray, np.ndarray], None], restart: Callable[[], None]) -> None:
+        self.config, self.stats, self._sink, self._restart = config, stats, sink, restart
+        self._streams = {s: _Stream() for s in STREAMS}
+        self._buffer: dict[str, tuple[list, list]] = {s: ([], []) for s in STREAMS}
+        self.buffered = 0
+        self.rate: float | None = config.sample_rate or None
+        self._anchor: float | None = None
+        self._k = 0
+        self._last_grid = -np.inf
+        self._segment_samples = 0
+
+    def regrid(self, config: EngineConfig) -> None:
+        """A new sample_rate: the grid restarts at the next excitation sample (0 = keep the old
+        rate as the estimate behind the tolerances)."""
+        self.config = config
+        self.rate = config.sample_rate or self.rate
+        self.stats.sample_rate = self.rate or 0.0
+        self._anchor = None
+        self._segment_samples = 0
+        self._emit()
+
+    def message_stamps(self, stream: str, stamp: float, count: int) -> np.ndarray | None:
+        """Stamps of the ``count`` samples of one message stamped ``stamp`` (batch convention:
+        the last sample at the stamp, spacing 1/fs). While fs is unknown the spacing is taken
+        from the previous message of the stream; the first such message gives None."""
+        previous = self._streams[stream].previous_message
+        self._streams[stream].previous_message = stamp
+        if count <= 1:
+            return np.full(count, float(stamp))
+        if self.rate:
+            period = 1.0 / self.rate
+        elif previous is not None and stamp > previous:
+            period = (stamp - previous) / count
+        else:
+            return None
+        return stamp - period * np.arange(count - 1, -1, -1)
+
+    def add_message(self, stream: str, stamp: float, values: np.ndarray, flush: bool = True) -> int:
+        """Add one message's samples (batch convention of ``message_stamps``); returns how many
+        were accepted. With ``flush=False`` the stamped samples are buffered until ``flush()``
+        (one vectorised update for many messages; returns the number buffered)."""
+        values = np.asarray(values, dtype=float).ravel()
+        stamps = self.message_stamps(stream, stamp, values.size)
+        if stamps is None:
+            self.stats.unstamped += 1
+            self._count_received(stream, values.size)
+            return 0
+        if not flush:
+            self._buffer[stream][0].append(stamps)
+            self._buffer[stream][1].append(values)
+            self.buffered += values.size
+            return values.size
+        return self.add(stream, stamps, values)
+
+    def flush(self) -> int:
+        """Add the buffered messages of both streams; returns how many samples were accepted."""
+        accepted = 0
+        for stream, (stamps, values) in self._buffer.items():
+            if stamps:
+                accepted += self.add(stream, np.concatenate(stamps), np.concatenate(values))
+                stamps.clear()
+                values.clear()
+        self.buffered = 0
+        return accepted
+
+    def _count_received(self, stream: str, n: int) -> None:
+        if stream == "excitation":
+            self.stats.received_excitation += n
+        else:
+            self.stats.received_response += n
+
+    def add(self, stream: str, t, x) -> int:
+        """Screen and add samples x at stamps t (s) to ``stream``; returns how many were accepted."""
+        t = np.atleast_1d(np.asarray(t, dtype=float)).ravel()
+        x = np.atleast_1d(np.asarray(x, dtype=float)).ravel()
+        if t.size != x.size:
+            raise ValueError(f"{stream}: {t.size} stamps for {x.size} samples")
+        self._count_received(stream, x.size)
+        finite = np.isfinite(t) & np.isfinite(x)
+        self.stats.nan_skipped += int(x.size - finite.sum())
+        t, x = t[finite], x[finite]
+        s = self._streams[stream]
+        newest = np.maximum.accumulate(np.concatenate([[s.last], t]))[:-1]
+        accept = t > newest
+        self.stats.duplicate += int(np.count_nonzero(t == newest))
+        self.stats.late += int(np.count_nonzero(t < newest))
+        t, x = t[accept], x[accept]
+        if t.size == 0:
+            return 0
+        self.stats.accepted[stream] += t.size
+        self.stats.first_stamp.setdefault(stream, float(t[0]))
+        self.stats.last_stamp[stream] = float(t[-1])
+        self.stats.overflow += s.append(t, x, cap=max(4 * self.config.window, 100_000))
+        self._emit()
+        return int(t.size)
+
+    def _infer_rate(self) -> None:
+        t = self._streams["excitation"].t
+        if t.size >= INFER_SAMPLES:
+            self.rate = float(1.0 / np.median(np.diff(t[:INFER_SAMPLES])))
+            self.stats.sample_rate = self.rate
+
+    def _next_grid_time(self, ex: _Stream, start: float, tol: float) -> float | None:
+        """The first grid point not yet emitted and not before ``start`` (None: wait for data)."""
+        if self.config.sample_rate:  # fixed grid t_a + k / fs
+            if self._anchor is None:
+                self._anchor, self._k = float(ex.t[0]), 0
+            self._k = max(self._k, math.ceil((start - tol - self._anchor) * self.rate))
+            return self._anchor + self._k / self.rate
+        later = ex.t[(ex.t > self._last_grid) & (ex.t >= start - tol)]  # excitation-clocked grid
+        return float(later[0]) if later.size else None
+
+    def _grid_until(self, ex: _Stream, first: float, end: float) -> np.ndarray:
+        if self.config.sample_rate:
+            last_k = math.floor((end - self._anchor) * self.rate)
+            return self._anchor + np.arange(self._k, last_k + 1) / self.rate
+        return ex.t[(ex.t >= first) & (ex.t <= end)]
+
+    def _emit(self) -> None:
+        if self.rate is None:
+            self._infer_rate()
+            if self.rate is None:
+                return
+        cfg = self.config
+        tol = GRID_TOLERANCE / self.rate
+        max_gap = cfg.max_gap or 5.0 / self.rate
+        ex, re = self._streams["excitation"], self._streams["response"]
+        while ex.t.size and re.t.size:
+            tk = self._next_grid_time(ex, max(ex.t[0], re.t[0]), tol)
+            if tk is None:
+                return
+            ends = {}
+            for name, s in (("excitation", ex), ("response", re)):
+                index = int(np.searchsorted(s.t, tk + tol, side="right")) - 1
+                ends[name] = s.segment_end(max(index, 0), max_gap)
+            end = min(e for e, _ in ends.values())
+            grid = self._grid_until(ex, tk, end + tol)
+            if grid.size:
+                self._emit_grid(grid, ex.values_at(grid, tol, cfg.interpolation),
+                                re.values_at(grid, tol, cfg.interpolation))
+                for s in (ex, re):  # keep the last sample at or before the newest grid point
+                    s.drop(max(0, int(np.searchsorted(s.t, grid[-1] + tol, side="right")) - 1))
+            blocked = [(name, resume) for name, (e, resume) in ends.items() if resume is not None and e <= end]
+            if not blocked:
+                return
+            name, resume = blocked[0]
+            s = self._streams[name]
+            s.drop(int(np.searchsorted(s.t, resume, side="left")))
+            if name == "excitation":
+                self._anchor = None
+            if self._segment_samples:
+                self.stats.gaps += 1
+                self._segment_samples = 0
+                self._restart()
+
+    def _emit_grid(self, grid: np.ndarray, v: np.ndarray, y: np.ndarray) -> None:
+        self._last_grid = float(grid[-1])
+        if self.config.sample_rate:
+            self._k = round((self._last_grid - self._anchor) * self.rate) + 1
+        self._segment_samples += grid.size
+        self.stats.aligned += grid.size
+        self._sink(grid, v, y)
+
+
+class StreamingEngine:
+    """Aligns excitation and response streams, keeps the correlation sums and the raw window."""
+
+    def __init__(self, config: EngineConfig | None = None) -> None:
+        self._config = (config or EngineConfig()).validated()
+        self.stats = EngineStats(sample_rate=self._config.sample_rate)
+        self._corr = _CorrelationWindow(self._config.window, self._config.tau_max, self._config.forgetting)
+        self._aligner = StreamAligner(self._config, self.stats, self._append_aligned, self._corr.reset)
+        self._stamp = float("nan")
+
+    @property
+    def config(self) -> EngineConfig:
+        return self._config
+
+    @property
+    def sample_rate(self) -> float | None:
+        """Grid rate in Hz (configured or inferred), None while still inferring."""
+        return self._aligner.rate
+
+    # ---------------------------------------------------------------- configuration
+    def reconfigure(self, **changes) -> None:
+        """Apply validated changes live. window / tau_max / forgetting rebuild the sums from the
+        raw window (no sample is lost); sample_rate re-grids (the window restarts, since samples
+        at two rates cannot share lag products); other fields only affect the next solve."""
+        names = {f.name for f in fields(EngineConfig)}
+        for name in changes:
+            if name not in names:
+                raise UsageError(f"{name}: unknown engine setting (known: {', '.join(sorted(names))})")
+        if "partition" in changes and changes["partition"] is not None:
+            changes["partition"] = tuple(float(c) for c in changes["partition"])
+        new = replace(self._config, **changes).validated()
+        old, self._config = self._config, new
+        self._aligner.config = new
+        if (new.window, new.tau_max, new.forgetting) != (old.window, old.tau_max, old.forgetting):
+            self._corr.rebuild(new.window, new.tau_max, new.forgetting)
+        if new.sample_rate != old.sample_rate:
+            self._corr.reset()
+            self._aligner.regrid(new)
+        self._update_fill()
+
+    # ---------------------------------------------------------------- ingestion
+    def add_excitation(self, t: np.ndarray, v: np.ndarray) -> int:
+        """Add samples v at stamps t (s); returns how many were accepted."""
+        return self._aligner.add("excitation", t, v)
+
+    def add_response(self, t: np.ndarray, y: np.ndarray) -> int:
+        """Add samples y at stamps t (s); returns how many were accepted."""
+        return self._aligner.add("response", t, y)
+
+    def message_stamps(self, stream: str, stamp: float, count: int) -> np.ndarray | None:
+        """See ``StreamAligner.message_stamps`` (batch convention: last sample at the stamp)."""
+        return self._aligner.message_stamps(stream, stamp, count)
+
+    def add_message(self, stream: str, stamp: float, values: np.ndarray, flush: bool = True) -> int:
+        """Add one message's samples of ``stream`` ("excitation" or "response"); with
+        ``flush=False`` buffer them until ``flush()`` (see ``StreamAligner.add_message``)."""
+        return self._aligner.add_message(stream, stamp, values, flush)
+
+    def flush(self) -> int:
+        """Add the messages buffered with ``add_message(..., flush=False)``."""
+        return self._aligner.flush()
+
+    @property
+    def buffered(self) -> int:
+        """Samples buffered by ``add_message(..., flush=False)`` and not yet flushed."""
+        return self._aligner.buffered
+
+    def _append_aligned(self, grid: np.ndarray, v: np.ndarray, y: np.ndarray) -> None:
+        self._corr.add(v, y)
+        self._stamp = float(grid[-1])
+        self._update_fill()
+
+    def _update_fill(self) -> None:
+        n = self._corr.count - self._corr.window_start
+        self.stats.window_samples = n
+        self.stats.window_fill = n / self._config.window
+
+    # ---------------------------------------------------------------- solving
+    def snapshot(self) -> EngineSnapshot:
+        v, y = self._corr.raw()
+        phi_vv, phi_yv, phi_yvv = self._corr.correlations()
+        return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
+                              self.stats.copy())
+
+    def solve(self) -> SolveOutcome:
+        """Solve on the current window (synchronously) and count it in the stats."""
+        outcome = solve_snapshot(self.snapshot())
+        self.record(outcome)
+        return outcome
+
+    def record(self, outcome: SolveOutcome) -> None:
+        """Count a solve (done here or in a worker thread) in the stats."""
+        if outcome.ok:
+            self.stats.solves += 1
+        else:
+            self.stats.solve_errors += 1
+
+
+def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) -> float:
+    """cond(R_p) of the input autocorrelation (Toeplitz) matrix R_p = [phi_vv(i - j)], p = 2n + 1
+    (capped at tau_max + 1): the input is persistently exciting of order p when R_p is well
+    conditioned (Ljung, System Identification, sec. 13.2). Uncentred, so a constant input gives a
+    rank-one R_p; a sinusoid is exciting of order 2 only, a sum of s sinusoids of order 2s."""
+    p = min(2 * order + 1, tau_max + 1)
+    one_sided = 0.5 * (phi_vv[tau_max : tau_max + p] + phi_vv[tau_max::-1][:p])
+    idx = np.arange(p)
+    eig = np.linalg.eigvalsh(one_sided[np.abs(idx[:, None] - idx[None, :])])
+    if eig[-1] <= 0 or eig[0] <= eig[-1] * 1e-300:
+        return float("inf")
+    return float(eig[-1] / eig[0])
+
+
+def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
+    """Identify the configured model on a snapshot (pure; may run in a worker thread).
+
+    CLS (paper 000 sec. 3.1): step 1 on the snapshot's correlation sums, step 2 on the raw
+    window; other methods: ``methods.identify`` on the raw window. Not ok (with the reason) when
+    the window is not ``min_fill`` full, the input is not persistently exciting or the method
+    fails on the data."""
+    started = time.perf_counter()
+    cfg, v, y = snapshot.config, snapshot.v, snapshot.y
+
+    def outcome(ok, reason, result=None, doc=None, cond=float("nan")) -> SolveOutcome:
+        return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp)
+
+    needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
+    if v.size < needed or snapshot.weight <= 0:
+        return outcome(False, f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)")
+    cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
+    spread = float(np.std(v))
+    if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
+        return outcome(False, f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
+                       cond=cond)
+    try:
+        if cfg.method in CLS_STRUCTURES:
+            from .correlation_least_squares import cls_from_correlations
+
+            result = cls_from_correlations(snapshot.phi_vv, snapshot.phi_yv, v, y, cfg.identify_options(),
+                                           structure=CLS_STRUCTURES[cfg.method])
+        else:
+            result = identify(cfg.method, v, y, cfg.identify_options())
+        with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
+            doc = result.to_json(v, y)
+    except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
+        return outcome(False, f"{cfg.method}: {exc}", cond=cond)
+    finite = np.all(np.isfinite(result.linear.a)) and np.all(np.isfinite(result.linear.b))
+    if not finite:
+        return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond)
+    return outcome(True, "", result, doc, cond)

@@ -1,0 +1,108 @@
+"""Generate the sample bags in ``bags/`` from simulated Hammerstein plants (deterministic seeds).
+
+    .venv/bin/python test/make_sample_bags.py [OUT_DIR]      # default: bags/
+
+1. ``float64_cubic_g1.mcap`` (written with ``mcap_ros2``): paper 000's G1 after F1(v) = v + 4 v^3,
+   Gaussian white command std 1/(2 pi) at 100 Hz for 60 s. ``/cmd`` std_msgs/msg/Float64 (one
+   sample per message, log time = sample time); ``/response`` std_msgs/msg/Float64MultiArray with
+   10 samples per message every 0.1 s (batch convention: log time = time of the LAST sample).
+2. ``joint_state_saturation/`` (a rosbag2 directory with MCAP storage, written with ``rosbags``):
+   saturation F(v) = clip(v, -0.6, 0.6) then a resonant 2nd-order block, Gaussian command std 0.5
+   at 100 Hz for 60 s. ``/cmd`` std_msgs/msg/Float64; ``/joint_states`` sensor_msgs/msg/JointState
+   (header stamp = sample time, log time 0.3-2 ms later): velocity[0] = the plant output + 1 %
+   noise, position[0] its integral, effort[0] = F(v).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hammer_ros.bag_io import ResultWriter
+from hammer_ros.linear import LinearModel
+from hammer_ros.simulate import add_noise, simulate_hammerstein
+
+START_NS = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z
+RATE = 100.0
+SAMPLES = 6000
+BATCH = 10
+
+# paper 000, sec. 4.1
+G1 = LinearModel.from_zeros_poles([1.25, 0.5], [0.95, 0.245 + 0.574j, 0.245 - 0.574j], dc_gain=1.0)
+RESONANT = LinearModel.from_zeros_poles([-0.5], [0.9 + 0.3j, 0.9 - 0.3j], dc_gain=1.0)
+SATURATION = 0.6
+
+
+def cubic(v: np.ndarray) -> np.ndarray:
+    return v + 4.0 * v**3
+
+
+def saturation(v: np.ndarray) -> np.ndarray:
+    return np.clip(v, -SATURATION, SATURATION)
+
+
+def stamps_ns() -> np.ndarray:
+    return START_NS + np.arange(SAMPLES, dtype=np.int64) * int(1e9 / RATE)
+
+
+def cubic_record(seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    v = np.random.default_rng(seed).standard_normal(SAMPLES) / (2 * np.pi)
+    return v, add_noise(simulate_hammerstein(v, cubic, G1), 0.01, seed=seed + 1)
+
+
+def saturation_record(seed: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    v = 0.5 * np.random.default_rng(seed).standard_normal(SAMPLES)
+    return v, add_noise(simulate_hammerstein(v, saturation, RESONANT), 0.01, seed=seed + 1)
+
+
+def write_float64_bag(path: Path) -> None:
+    v, y = cubic_record()
+    t = stamps_ns()
+    with ResultWriter(path) as out:
+        for k in range(SAMPLES):
+            out.write("/cmd", "std_msgs/msg/Float64", {"data": float(v[k])}, t[k])
+            if (k + 1) % BATCH == 0:
+                layout = {"dim": [{"label": "samples", "size": BATCH, "stride": BATCH}], "data_offset": 0}
+                out.write("/response", "std_msgs/msg/Float64MultiArray",
+                          {"layout": layout, "data": y[k + 1 - BATCH : k + 1].tolist()}, t[k])
+
+
+def write_joint_state_bag(path: Path) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    Float64, JointState = store.types["std_msgs/msg/Float64"], store.types["sensor_msgs/msg/JointState"]
+    Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    v, y = saturation_record()
+    position = np.cumsum(y) / RATE
+    t = stamps_ns()
+    latency = np.random.default_rng(5).integers(300_000, 2_000_000, SAMPLES)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        cmd = writer.add_connection("/cmd", Float64.__msgtype__, typestore=store)
+        joints = writer.add_connection("/joint_states", JointState.__msgtype__, typestore=store)
+        for k in range(SAMPLES):
+            writer.write(cmd, int(t[k]), store.serialize_cdr(Float64(data=float(v[k])), Float64.__msgtype__))
+            stamp = Time(sec=int(t[k] // 1_000_000_000), nanosec=int(t[k] % 1_000_000_000))
+            msg = JointState(header=Header(stamp=stamp, frame_id="base_link"), name=["joint1"],
+                             position=np.array([position[k]]), velocity=np.array([y[k]]),
+                             effort=np.array([saturation(v[k])]))
+            writer.write(joints, int(t[k] + latency[k]), store.serialize_cdr(msg, JointState.__msgtype__))
+
+
+def main(out_dir: str = "bags") -> None:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_float64_bag(out / "float64_cubic_g1.mcap")
+    target = out / "joint_state_saturation"
+    if target.exists():
+        for f in target.iterdir():
+            f.unlink()
+        target.rmdir()
+    write_joint_state_bag(target)
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])

@@ -1,0 +1,243 @@
+"""Paper 000 (Lum & Bernstein): CLS, Bai's NLS and standard LS against the paper's Tables 1-4
+(issue 2 acceptance), the CLI on CSV/NPZ records, and the reproduce rows of Tables 1-6.
+
+Monte Carlo: 30 fixed seeds per table (G1, 5001 samples, Gaussian input of std 1/(2 pi));
+"90 %" = at least 27 of the 30 runs (the issue asks for >= 20 seeds).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hammer_ros.cli import main as cli_main
+from hammer_ros.correlation_least_squares import (
+    bai_two_stage_nls,
+    correlation_least_squares,
+    gain_correction,
+    linear_estimate,
+    standard_least_squares,
+)
+from hammer_ros.errors import IdentificationError
+from hammer_ros.linear import root_rss_error
+from hammer_ros.methods import IdentifyOptions, identify
+from hammer_ros.reproduce import cls as tables
+
+RUNS = 30
+SEED = 2024
+METHODS = ("cls-arx", "cls-markov", "nls-arx", "nls-markov", "ls-arx", "ls-markov")
+CASES = {case.table: case for case in tables.CASES}
+HAMMER_ROS = Path(sys.executable).parent / "hammer-ros"
+
+
+def at_least_90_percent(flags) -> bool:
+    flags = list(flags)
+    return len(flags) >= 20 and sum(flags) >= 0.9 * len(flags)
+
+
+@pytest.fixture(scope="module")
+def monte_carlo():
+    """{(table, method): [Score per run]} and the NLS F1 results, Tables 1-4."""
+    scores, nls_f1 = {}, []
+    for table in (1, 2, 3, 4):
+        case = CASES[table]
+        for run in range(RUNS):
+            v, y = tables.case_record(case, SEED, run)
+            for method in METHODS:
+                result = tables.identify_case(case, v, y, method)
+                scores.setdefault((table, method), []).append(tables.score(case, result))
+                if table == 1 and method.startswith("nls"):
+                    nls_f1.append(result)
+    return scores, nls_f1
+
+
+@pytest.mark.parametrize("table", [1, 2, 3, 4])
+def test_cls_mu_markov_poles_and_zeros(monte_carlo, table):
+    pole_limit, zero_limit = (0.012, 0.015) if table == 1 else (0.02, 0.025)
+    runs = monte_carlo[0][table, "cls-markov"]
+    assert at_least_90_percent(s.pole_rss < pole_limit and s.zero_rss < zero_limit for s in runs), [
+        (round(s.pole_rss, 4), round(s.zero_rss, 4)) for s in runs]
+
+
+@pytest.mark.parametrize("table", [1, 2, 3, 4])
+def test_cls_arx_poles_and_zeros(monte_carlo, table):
+    pole_limit, zero_limit = (0.035, 0.06) if table == 1 else (0.08, 0.13)
+    runs = monte_carlo[0][table, "cls-arx"]
+    assert at_least_90_percent(s.pole_rss < pole_limit and s.zero_rss < zero_limit for s in runs), [
+        (round(s.pole_rss, 4), round(s.zero_rss, 4)) for s in runs]
+
+
+def test_nls_is_exact_for_the_matched_nonlinearity_f1(monte_carlo, g1):
+    """Table 1: F1 = v + 4 v^3 lies in the assumed model, so Bai's NLS (Remark 3) is exact."""
+    results = monte_carlo[1]
+    assert len(results) == 2 * RUNS
+    h1 = g1.markov_parameters(2)[1]
+    for result in results:
+        assert np.max(np.abs(result.poles - g1.poles)) < 1e-8
+        assert np.max(np.abs(result.zeros - g1.zeros)) < 1e-8
+        np.testing.assert_allclose(result.nonlinearity.coefficients, [0.0, 1.0, 0.0, 4.0], rtol=0, atol=1e-8)
+        assert result.gain / h1 == pytest.approx(1.0, abs=1e-8)
+
+
+@pytest.mark.parametrize("table", [2, 3])
+def test_paper_ordering_cls_nls_ls_for_unmatched_nonlinearities(monte_carlo, table):
+    """Tables 2-3: CLS ARX < NLS ARX < LS ARX, pole and zero RSS, in every run."""
+    cls, nls, ls = (monte_carlo[0][table, m] for m in ("cls-arx", "nls-arx", "ls-arx"))
+    for c, n, s in zip(cls, nls, ls):
+        assert c.pole_rss < n.pole_rss < s.pole_rss
+        assert c.zero_rss < n.zero_rss < s.zero_rss
+
+
+@pytest.mark.parametrize("table", [1, 2, 3, 4])
+def test_standard_ls_arx_is_off(monte_carlo, table):
+    assert all(s.pole_rss > 0.25 for s in monte_carlo[0][table, "ls-arx"])
+
+
+@pytest.mark.parametrize(("table", "gain", "tolerance"), [(1, 1.00, 0.015), (2, 0.70, 0.025), (3, 1.52, 0.08),
+                                                          (4, 0.70, 0.025)])
+@pytest.mark.parametrize("method", ["cls-arx", "cls-markov", "nls-arx", "nls-markov"])
+def test_gain_column_is_h1_ratio(monte_carlo, table, gain, tolerance, method):
+    runs = monte_carlo[0][table, method]
+    assert at_least_90_percent(abs(s.gain - gain) <= tolerance for s in runs), [round(s.gain, 4) for s in runs]
+
+
+def test_gain_correction_recovers_gamma_with_the_true_linear_block(g1, rng):
+    """CLS step 2 alone: with B_hat = 2.5 B (what step 1 returns when C_F = 2.5), gamma is
+    F1's coefficients divided by 2.5, for the ARX and the ARMARKOV polynomials."""
+    v = rng.standard_normal(800) / (2 * np.pi)
+    y = g1.simulate(v + 4 * v**3)
+    arx = linear_estimate(g1.a[1:], 2.5 * g1.b[1:], order=3, delay=1, mu=1)
+    np.testing.assert_allclose(gain_correction(v, y, arx, 3, 1, poly=3), [0.4, 0.0, 1.6], atol=1e-10)
+    markov = standard_least_squares(v, g1.simulate(v), order=3, delay=1, mu=30).scaled(2.5)  # exact ARMARKOV
+    np.testing.assert_allclose(markov.markov[1:6], 2.5 * g1.markov_parameters(6)[1:], atol=1e-9)
+    np.testing.assert_allclose(gain_correction(v, y, markov, 3, 1, poly=3), [0.4, 0.0, 1.6], atol=1e-8)
+
+
+def test_result_simulates_the_whole_hammerstein_model(g1, rng):
+    v = rng.standard_normal(3000) / (2 * np.pi)
+    y = g1.simulate(v + 4 * v**3)
+    result = identify("nls-markov", v, y, IdentifyOptions(order=3, delay=1))
+    np.testing.assert_allclose(result.simulate(v), y, atol=1e-8)
+    doc = result.to_json(v, y)
+    assert doc["fit_percent"] > 99.999 and len(doc["markov"]) == 31 and doc["mu"] == 30
+    assert doc["nonlinearity"]["kind"] == "polynomial"
+    ls = identify("ls-arx", v, y, IdentifyOptions(order=3, delay=1))
+    assert ls.nonlinearity is None and "nonlinearity" not in ls.to_json(v, y)
+    np.testing.assert_allclose(ls.simulate(v), ls.linear.simulate(v))
+
+
+def test_pure_functions_agree_with_the_registry(g1, rng):
+    v = rng.standard_normal(2000) / (2 * np.pi)
+    y = g1.simulate(np.tanh(8 * v) / 8)
+    options = IdentifyOptions(order=3, delay=1, tau_max=40)
+    cls = correlation_least_squares(v, y, 3, 1, mu=30, tau_max=40)
+    assert root_rss_error(cls.linear.linear.poles, identify("cls-markov", v, y, options).poles) < 1e-12
+    nls = bai_two_stage_nls(v, y, 3, 1)
+    assert nls.nonlinearity.coefficients[1] == pytest.approx(1.0)  # Remark 3: gamma_1 = 1
+    assert root_rss_error(nls.linear.linear.poles, identify("nls-arx", v, y, options).poles) < 1e-12
+
+
+def test_impossible_settings_raise_identification_error(g1, rng):
+    v = rng.standard_normal(300)
+    y = g1.simulate(v)
+    with pytest.raises(IdentificationError, match="tau_max"):
+        correlation_least_squares(v, y, 3, 1, mu=1, tau_max=200)
+    with pytest.raises(IdentificationError, match="larger --mu"):
+        identify("cls-markov", v, y, IdentifyOptions(order=3, delay=1, mu=4))
+    with pytest.raises(IdentificationError, match="too short"):
+        correlation_least_squares(v, y, 3, 1, mu=30, tau_max=20)
+    with pytest.raises(IdentificationError, match="V_11"):
+        identify("nls-arx", np.zeros(300), y, IdentifyOptions())
+    with pytest.raises(IdentificationError, match="gamma_1 = 0"):
+        identify("cls-arx", np.zeros(300), y, IdentifyOptions())
+    with pytest.raises(IdentificationError, match="rank"):
+        identify("cls-markov", np.zeros(300), y, IdentifyOptions(mu=10))
+
+
+def test_chirp_leaves_mu_markov_undetermined_above_the_sweep(g1):
+    """Table 5: the chirp sweeps 0.5-39.5 Hz at 100 Hz. CLS ARX still finds G1; the CLS
+    mu-Markov estimate of h is right inside the swept band and wrong only above it (the
+    error spectrum of the Markov parameters peaks in 39.5-50 Hz), which is why its ERA poles
+    are wrong (reproduce/cls.py docstring)."""
+    case = CASES[5]
+    v, y = tables.case_record(case, SEED, 0)
+    assert root_rss_error(g1.poles, tables.identify_case(case, v, y, "cls-arx").poles) < 0.03
+    markov = tables.identify_case(case, v, y, "cls-markov").markov
+    truth = g1.markov_parameters(markov.size)
+    error = markov / (markov[1] / truth[1]) - truth
+    spectrum = np.abs(np.fft.rfft(error, 512))
+    hz = np.fft.rfftfreq(512, d=0.01)
+    assert spectrum[hz > 40].max() > 10 * spectrum[hz < 39].max()
+
+
+def test_reproduce_rows_cover_every_cell_of_tables_1_to_6():
+    rows = tables.rows(runs=1, seed=0)
+    per_table = {}
+    for row in rows:
+        assert set(row) == {"paper", "table", "case", "quantity", "published", "ours"}
+        per_table.setdefault(row["table"], []).append(row)
+    assert len(per_table) == 6
+    for title, cells in per_table.items():
+        roots = 4 if "G1" in title else 6  # poles + zeros as printed (one per conjugate pair)
+        assert len(cells) == 6 * (roots + 3), title
+        quantities = {c["quantity"] for c in cells}
+        assert {"pole RSS", "zero RSS", "gain h1_hat/h1"} <= quantities
+    table1 = {(r["case"].split(",")[0], r["quantity"]): r for r in rows if r["table"].startswith("Table 1")}
+    assert table1["NLS ARX", "pole RSS"]["published"] == 0.0 and table1["NLS ARX", "pole RSS"]["ours"] < 1e-8
+    assert table1["CLS mu-Markov", "gain h1_hat/h1"]["published"] == 0.999
+
+
+# --- the CLI on CSV and NPZ records -------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def g1_f2_files(tmp_path_factory):
+    case = CASES[2]
+    v, y = tables.case_record(case, SEED, 99)
+    folder = tmp_path_factory.mktemp("cls_cli")
+    csv_path, npz_path = folder / "g1_f2.csv", folder / "g1_f2.npz"
+    np.savetxt(csv_path, np.column_stack([v, y]), delimiter=",", header="u,y", comments="", fmt="%.17g")
+    np.savez(npz_path, u=v, y=y)
+    return v, y, csv_path, npz_path
+
+
+def test_cli_identify_cls_markov_on_csv(g1_f2_files, g1):
+    _, _, csv_path, _ = g1_f2_files
+    run = subprocess.run([str(HAMMER_ROS), "identify", str(csv_path), "--method", "cls-markov", "--order", "3",
+                          "--delay", "1", "--json"], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    doc = json.loads(run.stdout)
+    poles = [complex(re, im) for re, im in doc["poles"]]
+    assert doc["method"] == "cls-markov" and doc["order"] == 3
+    assert root_rss_error(g1.poles, poles) < 0.02
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_method_from_the_cli_on_csv_and_npz(g1_f2_files, method, capsys):
+    v, y, csv_path, npz_path = g1_f2_files
+    expected = identify(method, v, y, IdentifyOptions(order=3, delay=1))
+    for path in (csv_path, npz_path):
+        assert cli_main(["identify", str(path), "--method", method, "--order", "3", "--delay", "1", "--json"]) == 0
+        doc = json.loads(capsys.readouterr().out)
+        assert doc["method"] == method and len(doc["poles"]) == 3 and len(doc["zeros"]) == 2
+        poles = [complex(re, im) for re, im in doc["poles"]]
+        assert root_rss_error(expected.poles, poles) < 1e-9
+        assert {"a", "b", "gain", "markov", "fit_percent", "rms"} <= set(doc)
+        assert ("nonlinearity" in doc) == (not method.startswith("ls"))
+
+
+@pytest.mark.parametrize(("extra", "reason"), [
+    (["--method", "cls-markov", "--mu", "3"], "mu"),
+    (["--method", "cls-arx", "--tau-max", "4000"], "tau_max"),
+    (["--method", "nls-markov", "--order", "3", "--delay", "4"], "--delay"),
+])
+def test_cli_impossible_options_exit_2_with_one_line(g1_f2_files, extra, reason, capsys):
+    _, _, csv_path, _ = g1_f2_files
+    assert cli_main(["identify", str(csv_path), *extra, "--json"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and reason in err[0] and "Traceback" not in err[0]
