@@ -64,7 +64,7 @@ from .correlation import auto_correlation, centred_square, cross_correlation, se
 from .era import eigensystem_realization
 from .errors import IdentificationError
 from .linear import LinearModel
-from .regression import build_regression, polynomial_basis, solve_least_squares
+from .regression import fit_regression, polynomial_basis, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein, simulate_parallel
 from .static_maps import PolynomialMap
@@ -76,7 +76,8 @@ STRUCTURES = ("hammerstein", "feedforward")
 
 @dataclass(frozen=True, eq=False)
 class HammersteinFit:
-    """y = H[F(u)], H with unit static gain, F ascending from u^0 (paper 003, Fig. 1)."""
+    """y = H[F(u)], F ascending from u^0 (paper 003, Fig. 1); ``identify_hammerstein`` returns
+    H at unit static gain, ``hammerstein_steps`` the unnormalised chain (alpha H, F')."""
 
     linear: LinearModel
     nonlinearity: PolynomialMap
@@ -84,9 +85,9 @@ class HammersteinFit:
 
 @dataclass(frozen=True, eq=False)
 class FeedforwardFit:
-    """z = H2[F(u)] + H1[u] (paper 003, Fig. 3/4): ``branch`` = H2 with unit static gain,
-    ``nonlinearity`` = F without a u^1 term, ``parallel_path`` = h1 + omega_1 h2 (eq. 32),
-    ``rho`` = 1/mu of eq. (30)."""
+    """z = H2[F(u)] + H1[u] (paper 003, Fig. 3/4): ``branch`` = H2 (at unit static gain from
+    ``identify_feedforward``, kappa H2 from ``feedforward_steps``), ``nonlinearity`` = F
+    without a u^1 term, ``parallel_path`` = h1 + omega_1 h2 (eq. 32), ``rho`` of eq. (30)."""
 
     branch: LinearModel
     nonlinearity: PolynomialMap
@@ -97,20 +98,6 @@ class FeedforwardFit:
         return simulate_parallel(u, self.nonlinearity, self.branch, self.parallel_path)
 
 
-def _arx_least_squares(response: np.ndarray, excitation: np.ndarray, order: int, delay: int):
-    """(regression, theta): the ARX regression (shared builder) of ``response`` on
-    ``excitation`` over the lags of two correlation functions, solved by least squares."""
-    try:
-        reg = build_regression(response, excitation, order, delay)
-    except ValueError as exc:
-        raise IdentificationError(f"--order/--tau-max: {exc}") from None
-    if reg.rows.size < reg.phi.shape[1]:
-        raise IdentificationError(
-            f"--tau-max: {reg.rows.size} correlation lags for {reg.phi.shape[1]} parameters (order {order})"
-        )
-    return reg, solve_least_squares(reg.phi, reg.target)
-
-
 def fit_pulse_transfer_function(response: np.ndarray, excitation: np.ndarray, order: int, delay: int) -> LinearModel:
     """B(q^-1)/A(q^-1) of order n, relative degree d, from the ARX regression
 
@@ -118,7 +105,7 @@ def fit_pulse_transfer_function(response: np.ndarray, excitation: np.ndarray, or
 
     solved by least squares (paper 003 eq. 14, "a least squares algorithm", Isermann et al.
     1974) over the lags of two correlation functions, as in paper 000 CLS step 1."""
-    reg, theta = _arx_least_squares(response, excitation, order, delay)
+    reg, theta = fit_regression(response, excitation, order, delay)
     a, b = reg.split(theta)
     numerator = np.zeros(order + 1)
     numerator[reg.input_lags] = b[:, 0]
@@ -139,9 +126,10 @@ def _check(u: np.ndarray, z: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.n
         raise IdentificationError("the record holds NaN or infinite samples")
     if np.ptp(u) == 0.0:
         raise IdentificationError("the input is constant: no correlation to identify from")
-    if u.size < 2 * tau_max + 1 or tau_max < 1:
-        raise IdentificationError(f"--tau-max: {tau_max} needs 1 <= tau_max and >= {2 * tau_max + 1} samples, "
-                                  f"the record has {u.size}")
+    if tau_max < 1:
+        raise IdentificationError(f"--tau-max: must be >= 1 (got {tau_max})")
+    if u.size < 2 * tau_max + 1:
+        raise IdentificationError(f"--tau-max: {tau_max} needs >= {2 * tau_max + 1} samples, the record has {u.size}")
     return u, z
 
 
@@ -152,7 +140,8 @@ def _unit_static_gain(linear: LinearModel, coefficients: np.ndarray) -> tuple[Li
     scale = np.sum(np.abs(linear.b)) / np.sum(np.abs(linear.a))
     if not np.isfinite(gain) or abs(gain) <= 1e-9 * scale:
         return linear, PolynomialMap(coefficients)
-    return linear.scaled(1.0 / gain), PolynomialMap(np.asarray(coefficients) * gain)
+    # + 0.0 turns the -0.0 of a negative gain into 0.0
+    return LinearModel(linear.b / gain + 0.0, linear.a), PolynomialMap(np.asarray(coefficients) * gain + 0.0)
 
 
 def _response_length(*models: LinearModel) -> int:
@@ -222,18 +211,19 @@ def split_first_order_correlation(
     polynomial (a second input channel); that relaxation alone lets B1/A1 absorb part of h2
     whenever the model order exceeds H1's, hence the exact constraint."""
     s = kappa_h2.simulate(phi_xx)
-    reg, theta = _arx_least_squares(phi_xz, np.column_stack([phi_xx, s]), order, 0)
+    reg, theta = fit_regression(phi_xz, np.column_stack([phi_xx, s]), order, 0)
     relaxed_beta = float(reg.split(theta)[1][0, 1])
 
     def fit(beta: float):
-        return _arx_least_squares(phi_xz - beta * s, phi_xx, order, 0)
+        return fit_regression(phi_xz - beta * s, phi_xx, order, 0)
 
     def residual(beta: float) -> float:
         reg, theta = fit(beta)
         return float(np.sum((reg.target - reg.phi @ theta) ** 2))
 
     start = relaxed_beta if relaxed_beta != 0.0 else 1.0
-    beta = optimize.minimize_scalar(residual, bracket=(start, 1.05 * start)).x
+    search = optimize.minimize_scalar(residual, bracket=(start, 1.05 * start))
+    beta = float(search.x) if search.success and np.isfinite(search.x) else relaxed_beta
     reg, theta = fit(beta)
     a, b = reg.split(theta)
     return LinearModel(b[:, 0], np.concatenate([[1.0], a]))

@@ -36,7 +36,7 @@ from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .errors import IdentificationError
 from .linear import LinearModel
-from .regression import build_regression, polynomial_basis, solve_least_squares
+from .regression import build_regression, fit_regression, polynomial_basis, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PolynomialMap
@@ -88,16 +88,7 @@ def _check_record(v: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int):
     """Solve the ARX (mu = 1) or mu-Markov regression (eqs. 1, 3) of y on v (1-D or a basis
     matrix): returns (regression, a or alpha, input coefficients as lags x channels)."""
-    try:
-        reg = build_regression(y, v, order, delay, mu)
-    except ValueError as exc:
-        raise IdentificationError(str(exc)) from None
-    if reg.rows.size < reg.phi.shape[1]:
-        raise IdentificationError(
-            f"{reg.rows.size} regression rows for {reg.phi.shape[1]} parameters "
-            f"(order {order}, delay {delay}, mu {mu}): record or tau_max too short"
-        )
-    theta = solve_least_squares(reg.phi, reg.target)
+    reg, theta = fit_regression(y, v, order, delay, mu)
     a, coefficients = reg.split(theta)
     return reg, a, coefficients
 

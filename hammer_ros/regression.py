@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import IdentificationError
+
 
 def lagged_columns(x: np.ndarray, lags, rows: np.ndarray) -> np.ndarray:
     """Columns x(k - l) for l in ``lags`` at sample indices k in ``rows``.
@@ -92,6 +94,26 @@ def solve_least_squares(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
     """theta minimising ||target - phi theta||_2 (QR / SVD based, never the normal equations)."""
     theta, *_ = np.linalg.lstsq(phi, target, rcond=None)
     return theta
+
+
+def fit_regression(
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1
+) -> tuple[Regression, np.ndarray]:
+    """Build the ARX / mu-Markov regression of y on v and solve it by least squares.
+
+    Raises IdentificationError (naming order, delay, mu) when the record - or the number of
+    correlation lags, when y and v are correlation functions - is too short for the model.
+    """
+    try:
+        reg = build_regression(y, v, order, delay, mu)
+    except ValueError as exc:
+        raise IdentificationError(f"--order/--delay/--mu: {exc}") from None
+    if reg.rows.size < reg.phi.shape[1]:
+        raise IdentificationError(
+            f"{reg.rows.size} regression rows for {reg.phi.shape[1]} parameters "
+            f"(order {order}, delay {delay}, mu {mu}): record or --tau-max too short"
+        )
+    return reg, solve_least_squares(reg.phi, reg.target)
 
 
 def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.ndarray:
