@@ -7,7 +7,7 @@ STAMP     := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: setup test demo lint reproduce bench clean
+.PHONY: setup test demo lint reproduce bench bench-deps clean
 
 setup: $(STAMP)
 
@@ -29,7 +29,12 @@ lint: setup
 reproduce: setup
 	$(BIN)/hammer-ros reproduce all
 
-bench: setup
+# the peers of the benchmark (SysIdentPy), installed into .venv only for `hammer-ros bench`
+bench-deps: setup
+	env -u LD_LIBRARY_PATH -u _ROS_WHEELS_BOOTSTRAP_COMPLETE $(BIN)/python -m pip install -q --disable-pip-version-check \
+	    --no-deps -r requirements/bench.txt
+
+bench: bench-deps
 	$(BIN)/hammer-ros bench
 
 clean:

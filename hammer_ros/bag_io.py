@@ -13,10 +13,12 @@ Writing (``ResultWriter``) uses the ``mcap_ros2`` writer with the ``.msg`` defin
 
 from __future__ import annotations
 
+import functools
 import re
+import struct
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -70,9 +72,14 @@ def load_msg_config(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise UsageError(f"{path}: no such config file")
     try:
-        doc = yaml.safe_load(path.read_text())
+        doc = yaml.safe_load(path.read_text())  # safe_load: plain data only, no Python objects
+    except UnicodeDecodeError:
+        raise UsageError(f"{path}: not a text (UTF-8) file") from None
     except yaml.YAMLError as exc:
-        raise UsageError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise UsageError(f"{path}{where}: not valid YAML ({problem})") from None
     if isinstance(doc, dict):
         for section in doc.values():
             if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
@@ -95,7 +102,9 @@ def engine_config_from_params(params: dict[str, Any], source: str = "config",
         if key == "mu" and value in (0, None):
             value = None
         elif key == "partition":
-            value = tuple(float(c) for c in value) if value else None
+            if value is not None and not isinstance(value, (list, tuple)):
+                raise UsageError(f"{source}: partition: must be a list of breakpoints, e.g. [-0.5, 0.5] (got {value!r})")
+            value = tuple(value) if value else None
         changes[key] = value
     try:
         config = EngineConfig(**{**(base or EngineConfig()).__dict__, **changes})
@@ -124,8 +133,54 @@ def stream_specs(input_spec: str | None, output_spec: str | None, params: dict[s
 
 
 # ------------------------------------------------------------------------------- reading
+MAX_RECORD_BYTES = 256 * 2**20  # an MCAP record (chunk) claiming more is treated as damage, never allocated
+MAX_MESSAGE_BYTES = 16 * 2**20  # a message larger than this (2 M float64 samples) is skipped and counted
+MAX_RECORD_SAMPLES = 10_000_000  # identify/diagnose hold the aligned record in memory: at most this many samples
+FIELD_CHECK_MESSAGES = 100  # a field path must work in one of the first messages of its topic
+_warned: set[str] = set()
+
+
+def warn(text: str) -> None:
+    """One ``hammer-ros: warning:`` line on stderr (each distinct text once per process)."""
+    if text not in _warned:
+        _warned.add(text)
+        print(f"hammer-ros: warning: {text}", file=sys.stderr)
+
+
+@dataclass
+class BagReadStats:
+    """What reading a bag skipped; nothing is dropped silently (``warnings`` says what and why)."""
+
+    damage: list[str] = field(default_factory=list)  # where a file is truncated or corrupt
+    oversized: int = 0  # messages larger than MAX_MESSAGE_BYTES
+    undecodable: int = 0  # messages whose CDR bytes do not decode with their schema
+    field_errors: dict[str, int] = field(default_factory=dict)  # topic -> messages without the field
+    first_error: dict[str, str] = field(default_factory=dict)  # kind or topic -> the first reason
+
+    def note(self, key: str, reason: str) -> None:
+        self.first_error.setdefault(key, reason)
+
+    def warnings(self, path: str | Path) -> list[str]:
+        lines = list(self.damage)
+        if self.oversized:
+            lines.append(f"{path}: {self.oversized} message(s) over {MAX_MESSAGE_BYTES // 2**20} MiB skipped "
+                         f"({self.first_error['oversized']})")
+        if self.undecodable:
+            lines.append(f"{path}: {self.undecodable} message(s) that do not decode skipped "
+                         f"({self.first_error['undecodable']})")
+        lines.extend(f"{path}: {n} message(s) on {topic} skipped ({self.first_error[topic]})"
+                     for topic, n in self.field_errors.items())
+        return lines
+
+    def report(self, path: str | Path) -> None:
+        for line in self.warnings(path):
+            warn(line)
+
+
 def bag_files(path: str | Path) -> list[Path]:
-    """The .mcap files of a bag: the file itself, or those listed in a rosbag2 metadata.yaml."""
+    """The .mcap files of a bag: the file itself, or those listed in a rosbag2 metadata.yaml
+    (without a usable metadata.yaml, e.g. a recording that was killed: the directory's .mcap
+    files in name order, with a warning)."""
     path = Path(path)
     if not path.exists():
         raise UsageError(f"{path}: no such bag (expected a .mcap file or a rosbag2 directory)")
@@ -134,68 +189,182 @@ def bag_files(path: str | Path) -> list[Path]:
             raise UsageError(f"{path}: not a .mcap file")
         return [path]
     meta = path / "metadata.yaml"
+    found = sorted(p for p in path.glob("*.mcap") if p.is_file())
     if not meta.is_file():
-        raise UsageError(f"{path}: not a rosbag2 directory (no metadata.yaml)")
+        if not found:
+            raise UsageError(f"{path}: not a rosbag2 directory (no metadata.yaml and no .mcap files)")
+        warn(f"{path}: no metadata.yaml; reading its {len(found)} .mcap file(s) in name order")
+        return found
     try:
         info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
         storage = info.get("storage_identifier", "mcap")
         files = [path / f for f in info.get("relative_file_paths", [])]
-    except (yaml.YAMLError, KeyError, TypeError, AttributeError):
-        raise UsageError(f"{meta}: not a rosbag2 metadata file") from None
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
+        if not found:
+            raise UsageError(f"{meta}: not a rosbag2 metadata file (and no .mcap files beside it)") from None
+        warn(f"{meta}: not a rosbag2 metadata file; reading the {len(found)} .mcap file(s) in name order")
+        return found
     if storage != "mcap":
         raise UsageError(f"{path}: storage {storage!r} is not supported (record with -s mcap)")
-    files = files or sorted(path.glob("*.mcap"))
+    files = files or found
     missing = [f for f in files if not f.is_file()]
     if not files or missing:
         raise UsageError(f"{path}: bag file {missing[0] if missing else '*.mcap'} is missing")
     return files
 
 
-def _summaries(path: str | Path):
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+class _RecordScan:
+    """A sequential, fault-tolerant read of one MCAP file (no summary needed, so an unfinished
+    recording is read too). ``groups()`` yields the records of each chunk as one list (a record
+    outside chunks as a list of one). A chunk that fails its CRC, decompression or parsing is
+    skipped; a record that cannot be read ends the file (its length is unknown, nothing after it
+    can be found). ``damage`` says where, in bytes from the start of the file."""
 
-    for file in bag_files(path):
+    def __init__(self, file: Path) -> None:
+        self.file = file
+        self.damage: list[str] = []
+        self.header_seen = False
+        self.messages = 0  # message records read (chunks included)
+
+    def groups(self) -> Iterator[list[Any]]:
+        from mcap.exceptions import McapError
+        from mcap.records import Chunk, Header
+        from mcap.stream_reader import StreamReader
+
+        size = self.file.stat().st_size
+        with open(self.file, "rb") as fh:
+            records = StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
+            offset = 0
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    return
+                except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
+                    truncated = isinstance(exc, (EOFError, struct.error)) or type(exc).__name__ == "EndOfFile"
+                    what = "truncated: the file ends inside the record" if truncated else f"unreadable ({_reason(exc)})"
+                    self.damage.append(f"{what} at byte {offset:,} of {size:,}; "
+                                       f"read the {self.messages} messages before it")
+                    return
+                if isinstance(record, Header):
+                    self.header_seen = True
+                group = self._chunk(record, offset) if isinstance(record, Chunk) else [record]
+                self.messages += sum(type(r).__name__ == "Message" for r in group)
+                if group:
+                    yield group
+                offset = fh.tell()
+
+    def _chunk(self, chunk, offset: int) -> list[Any]:
+        from mcap.stream_reader import breakup_chunk
+
+        if chunk.uncompressed_size > MAX_RECORD_BYTES:
+            self.damage.append(f"chunk at byte {offset:,} claims {chunk.uncompressed_size:,} bytes; skipped")
+            return []
         try:
-            with open(file, "rb") as fh:
-                summary = make_reader(fh).get_summary()
-        except (McapError, OSError, ValueError, EOFError) as exc:
-            raise UsageError(f"{file}: not a readable MCAP file ({exc})") from None
-        if summary is None:
-            raise UsageError(f"{file}: MCAP file without a summary (unfinished recording?)")
-        yield summary
+            return breakup_chunk(chunk, validate_crc=True)
+        except Exception as exc:  # damaged data fails in many ways inside zstd/lz4/the parser
+            self.damage.append(f"chunk at byte {offset:,} is corrupt ({_reason(exc)}); skipped")
+            return []
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+@dataclass(frozen=True, eq=False)
+class FileIndex:
+    """The schemas, channels and message counts of one MCAP file (from its summary, else from a
+    scan of its records); ``damage`` says where the scan found it broken."""
+
+    file: Path
+    schemas: dict[int, Any]
+    channels: dict[int, Any]
+    counts: dict[int, int]
+    damage: tuple[str, ...]
+
+
+def file_index(file: Path) -> FileIndex:
+    stat = file.stat()
+    return _file_index(str(file), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=32)
+def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
+    from mcap.exceptions import InvalidMagic, McapError
+    from mcap.reader import SeekingReader
+    from mcap.records import Channel, Message, Schema
+
+    path = Path(file)
+    summary = None
+    try:
+        with open(path, "rb") as fh:
+            summary = SeekingReader(fh, record_size_limit=MAX_RECORD_BYTES).get_summary()
+    except InvalidMagic:
+        raise UsageError(f"{path}: not an MCAP file (wrong magic bytes)") from None
+    except (McapError, ValueError, EOFError, OSError, struct.error):
+        summary = None  # no footer or summary: an unfinished or damaged recording, scanned below
+    if summary is not None and summary.statistics is not None:
+        return FileIndex(path, dict(summary.schemas), dict(summary.channels),
+                         dict(summary.statistics.channel_message_counts), ())
+    scan = _RecordScan(path)
+    schemas, channels, counts = {}, {}, {}
+    for group in scan.groups():
+        for record in group:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+    if not scan.header_seen:
+        reason = scan.damage[0] if scan.damage else "no MCAP header record"
+        raise UsageError(f"{path}: not a readable MCAP file ({'empty file' if size == 0 else reason})")
+    return FileIndex(path, schemas, channels, counts, tuple(scan.damage))
 
 
 def bag_topics(path: str | Path) -> dict[str, str]:
     """topic -> ROS type name of every channel in the bag."""
     topics = {}
-    for summary in _summaries(path):
-        for channel in summary.channels.values():
-            schema = summary.schemas.get(channel.schema_id)
+    for file in bag_files(path):
+        index = file_index(file)
+        for channel in index.channels.values():
+            schema = index.schemas.get(channel.schema_id)
             topics[channel.topic] = schema.name if schema else ""
     return topics
 
 
 def bag_message_counts(path: str | Path) -> dict[str, int]:
-    """topic -> number of messages (from the MCAP summaries)."""
+    """topic -> number of messages (from the MCAP summaries, else counted by a scan)."""
     counts: dict[str, int] = {}
-    for summary in _summaries(path):
-        per_channel = summary.statistics.channel_message_counts if summary.statistics else {}
-        for channel_id, count in per_channel.items():
-            topic = summary.channels[channel_id].topic
-            counts[topic] = counts.get(topic, 0) + count
+    for file in bag_files(path):
+        index = file_index(file)
+        for channel_id, count in index.counts.items():
+            channel = index.channels.get(channel_id)
+            if channel is not None:
+                counts[channel.topic] = counts.get(channel.topic, 0) + count
     return counts
 
 
 def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, str]:
-    """The bag's topic types; a UsageError when a spec's topic is absent or of another type."""
+    """The bag's topic types; a UsageError when a spec's topic is absent, of another type, or
+    not decodable (not ROS 2 CDR with a ros2msg schema). Other topics are never decoded, so
+    unknown schemas there do not matter."""
     topics = bag_topics(path)
     for spec in specs:
         if spec.topic not in topics:
-            raise UsageError(f"{path}: no topic {spec.topic!r} (topics: {', '.join(sorted(topics)) or 'none'})")
+            damage = [d for f in bag_files(path) for d in file_index(f).damage]
+            note = f"; damaged file: {damage[0]}" if damage else ""
+            raise UsageError(f"{path}: no topic {spec.topic!r} (topics: {', '.join(sorted(topics)) or 'none'}){note}")
         wanted, found = _normal_type(spec.type_name), _normal_type(topics[spec.topic])
         if wanted and found and wanted != found:
             raise UsageError(f"{path}: topic {spec.topic} has type {topics[spec.topic]}, config says {spec.type_name}")
+    wanted_topics = {spec.topic for spec in specs}
+    for file in bag_files(path):
+        decoders = _Decoders(file_index(file))
+        for channel in decoders.index.channels.values():
+            if channel.topic in wanted_topics:
+                decoders.get(channel)
     return topics
 
 
@@ -207,42 +376,109 @@ def _normal_type(name: str | None) -> str:
     return f"{parts[0]}/{parts[-1]}"
 
 
-def iter_bag_messages(path: str | Path, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
-    """(topic, log time in ns, decoded message) of ``topics`` in log-time order, over all files."""
+class _Decoders:
+    """CDR decoders of one file's channels, built from the ros2msg schemas stored in the bag."""
+
+    def __init__(self, index: FileIndex) -> None:
+        from mcap_ros2.decoder import DecoderFactory
+
+        self.index = index
+        self.schemas = dict(index.schemas)
+        self.channels = dict(index.channels)
+        self._factory = DecoderFactory()
+        self._decoders: dict[int, Any] = {}
+
+    def get(self, channel) -> Any:
+        decoder = self._decoders.get(channel.id)
+        if decoder is not None:
+            return decoder
+        schema = self.schemas.get(channel.schema_id)
+        where = f"{self.index.file}: topic {channel.topic}"
+        if schema is None:
+            raise UsageError(f"{where}: no schema stored for it, cannot decode")
+        try:
+            decoder = self._factory.decoder_for(channel.message_encoding, schema)
+        except Exception as exc:  # the schema text comes from the file: any parse failure
+            raise UsageError(f"{where}: cannot parse its schema {schema.name!r} ({_reason(exc)})") from None
+        if decoder is None:
+            raise UsageError(f"{where}: {channel.message_encoding!r} messages with a {schema.encoding!r} schema "
+                             "are not ROS 2 CDR/ros2msg, cannot decode")
+        self._decoders[channel.id] = decoder
+        return decoder
+
+
+def iter_bag_messages(path: str | Path, topics: list[str],
+                      stats: BagReadStats | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time in ns, decoded message) of ``topics`` in log-time order (per chunk;
+    files merged by log time). Damaged chunks, messages over MAX_MESSAGE_BYTES and messages that
+    do not decode are skipped and counted in ``stats``; only ``topics`` are decoded."""
     import heapq
 
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
+    from mcap.records import Channel, Message, Schema
+
+    stats = stats if stats is not None else BagReadStats()
+    wanted = set(topics)
 
     def one_file(file: Path):
-        try:
-            with open(file, "rb") as fh:
-                reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-                for _, channel, message, decoded in reader.iter_decoded_messages(topics, log_time_order=True):
-                    yield message.log_time, channel.topic, decoded
-        except (McapError, OSError, EOFError, ValueError, KeyError) as exc:
-            raise UsageError(f"{file}: cannot decode ({type(exc).__name__}: {exc})") from None
+        decoders = _Decoders(file_index(file))
+        scan = _RecordScan(file)
+        for group in scan.groups():
+            messages = []
+            for record in group:
+                if isinstance(record, Message):
+                    channel = decoders.channels.get(record.channel_id)
+                    if channel is not None and channel.topic in wanted:
+                        messages.append((record.log_time, channel, record))
+                elif isinstance(record, Channel):
+                    decoders.channels.setdefault(record.id, record)
+                elif isinstance(record, Schema):
+                    decoders.schemas.setdefault(record.id, record)
+            messages.sort(key=lambda m: m[0])
+            for log_time, channel, record in messages:
+                if len(record.data) > MAX_MESSAGE_BYTES:
+                    stats.oversized += 1
+                    stats.note("oversized", f"{channel.topic}: {len(record.data):,} bytes")
+                    continue
+                decoder = decoders.get(channel)
+                try:
+                    decoded = decoder(record.data)
+                except Exception as exc:  # corrupt CDR bytes fail in many ways
+                    stats.undecodable += 1
+                    stats.note("undecodable", f"{channel.topic}: {_reason(exc)}")
+                    continue
+                yield log_time, channel.topic, decoded
+        stats.damage.extend(f"{file}: {d}" for d in scan.damage if f"{file}: {d}" not in stats.damage)
 
     for log_time, topic, decoded in heapq.merge(*(one_file(f) for f in bag_files(path)), key=lambda m: m[0]):
         yield topic, log_time, decoded
 
 
 def check_fields(path: str | Path, specs: tuple[StreamSpec, ...]) -> None:
-    """A UsageError when a spec's topic has no messages or its field is not in the first one."""
+    """A UsageError when a spec's topic has no messages or its field is in none of the first
+    FIELD_CHECK_MESSAGES messages of the topic (later messages without it are skipped and counted)."""
     counts = bag_message_counts(path)
     for spec in specs:
         if not counts.get(spec.topic):
             raise UsageError(f"{path}: topic {spec.topic} has no messages")
     pending = {spec.topic: [s for s in specs if s.topic == spec.topic] for spec in specs}
-    for topic, _, msg in iter_bag_messages(path, list(pending)):
-        for spec in pending.pop(topic, []):
+    first_error: dict[str, str] = {}
+    tried: dict[str, int] = {}
+    read = BagReadStats()
+    for topic, _, msg in iter_bag_messages(path, list(pending), read):
+        for spec in list(pending.get(topic, ())):
             try:
                 extract_samples(msg, spec.field)
+                pending[topic].remove(spec)
             except UsageError as exc:
-                raise UsageError(f"{path}: topic {topic}: {exc}") from None
-        if not pending:
-            return
+                first_error.setdefault(topic, str(exc))
+        tried[topic] = tried.get(topic, 0) + 1
+        pending = {t: s for t, s in pending.items() if s}
+        if not pending or any(tried.get(t, 0) >= FIELD_CHECK_MESSAGES for t in pending):
+            break
+    for topic in pending:
+        problems = read.warnings(path)
+        reason = first_error.get(topic) or "no message could be read" + (f" ({problems[0]})" if problems else "")
+        raise UsageError(f"{path}: topic {topic}: {reason}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -255,21 +491,27 @@ class BagSample:
     log_time: int  # ns
 
 
-def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec) -> Iterator[BagSample]:
+def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
+                     stats: BagReadStats | None = None) -> Iterator[BagSample]:
     """The excitation and response samples of the bag, message by message in log-time order.
-    When both specs name the same topic, each message feeds both streams."""
+    When both specs name the same topic, each message feeds both streams. A message without the
+    field is skipped and counted in ``stats.field_errors`` (``check_fields`` first rejects a field
+    that no message has)."""
+    stats = stats if stats is not None else BagReadStats()
     check_topics(path, (excitation, response))
     roles: dict[str, list[tuple[str, StreamSpec]]] = {}
     for role, spec in (("excitation", excitation), ("response", response)):
         roles.setdefault(spec.topic, []).append((role, spec))
-    for topic, log_time, msg in iter_bag_messages(path, list(roles)):
+    for topic, log_time, msg in iter_bag_messages(path, list(roles), stats):
         stamp = message_stamp(msg)
         stamp = log_time * 1e-9 if not stamp else stamp
         for role, spec in roles[topic]:
             try:
                 values = extract_samples(msg, spec.field)
             except UsageError as exc:
-                raise UsageError(f"{path}: topic {topic}: {exc}") from None
+                stats.field_errors[topic] = stats.field_errors.get(topic, 0) + 1
+                stats.note(topic, str(exc))
+                continue
             yield BagSample(role, stamp, values, log_time)
 
 
@@ -277,18 +519,26 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
                     config: str | Path | None = None) -> Record:
     """All aligned samples of a bag as a Record (the streaming engine's alignment, without the
     window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
-    gap-free segments (a note on stderr says how many)."""
+    gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
+    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window)."""
     params = load_msg_config(config) if config else {}
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
+    check_topics(path, (excitation, response))
+    check_fields(path, (excitation, response))
     chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     stats = EngineStats(sample_rate=engine_config.sample_rate)
     aligner = StreamAligner(engine_config, stats, lambda t, v, y: chunks.append((t, v, y)), lambda: None)
-    for sample in iter_bag_samples(path, excitation, response):
+    read = BagReadStats()
+    for sample in iter_bag_samples(path, excitation, response, read):
         aligner.add_message(sample.stream, sample.stamp, sample.values, flush=False)
         if aligner.buffered >= FLUSH_SAMPLES:
             aligner.flush()
+            if stats.aligned > MAX_RECORD_SAMPLES:
+                raise UsageError(f"{path}: more than {MAX_RECORD_SAMPLES:,} aligned samples, too many to identify "
+                                 "in one batch; use `hammer-ros replay` (a sliding window) or cut the bag")
     aligner.flush()
+    read.report(path)
     if not chunks:
         raise UsageError(f"{path}: no aligned samples of {excitation} and {response} "
                          f"({stats.received_excitation} and {stats.received_response} received)")

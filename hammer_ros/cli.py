@@ -219,6 +219,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="speed and accuracy benchmark (not part of the tests)")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json", action="store_true")
+    p.add_argument("--only", default=None, type=lambda text: [s.strip() for s in text.split(",") if s.strip()],
+                   help="comma-separated sections: ingest,node,replay,solve,peers,memory (default all)")
+    p.add_argument("--profile", action="store_true", help="print a cProfile of each section on stderr")
     p.set_defaults(func=_delegate("bench"))
     return parser
 

@@ -42,6 +42,7 @@ from rclpy.experimental import EventsExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from rclpy.utilities import remove_ros_args  # noqa: E402
 from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
 
 from .errors import UsageError  # noqa: E402
@@ -352,11 +353,13 @@ class IdentificationNode(Node):
             validate_full_topic_name(expand_topic_name(topic, self.get_name(), self.get_namespace()))
         except Exception as exc:  # rclpy raises several exception types for bad names
             raise UsageError(f"{stream}_topic: invalid topic name {topic!r} ({str(exc).split(',')[0]})") from None
-        cls = message_class(values[f"{stream}_type"])
-        path = parse_field_path(values[f"{stream}_field"])
         try:
-            check_field(cls, path)
-        except FieldError as exc:
+            cls = message_class(values[f"{stream}_type"])
+        except UsageError as exc:
+            raise UsageError(f"{stream}_type: {exc}") from None
+        try:
+            check_field(cls, parse_field_path(values[f"{stream}_field"]))
+        except UsageError as exc:
             raise UsageError(f"{stream}_field: {exc}") from None
 
     # ------------------------------------------------------------------ solving
@@ -426,9 +429,29 @@ class IdentificationNode(Node):
             worker.join(timeout=1.0)
 
 
+def usage() -> str:
+    """``--help``: how to start the node, and every parameter with its default."""
+    lines = ["usage: hammer-ros node [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] [-r __node:=NAME]]",
+             "", "Live Hammerstein identification: subscribes to excitation_topic and response_topic, publishes",
+             "~/model (JSON, transient local), ~/poles, ~/zeros, ~/markov, ~/nonlinearity and /diagnostics.",
+             "", "parameters (default):"]
+    for name, spec in PARAMETERS.items():
+        default = "unset" if spec.default is None else repr(spec.default)
+        lines.append(f"  {name:<18} {spec.description} ({default})")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM (exit 0); exit 2 on a bad startup configuration."""
     args = sys.argv if argv is None else ["hammer_ros_node", *argv]
+    extra = remove_ros_args(args)[1:]
+    if extra in (["-h"], ["--help"]):
+        print(usage())
+        return 0
+    if extra:
+        print(f"hammer_ros_node: error: unknown arguments {' '.join(extra)} (parameters go after --ros-args)",
+              file=sys.stderr)
+        return 2
     rclpy.init(args=args)
     node = None
     try:

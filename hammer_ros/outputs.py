@@ -58,11 +58,22 @@ def _roots_state(header: dict, prefix: str, roots: list[list[float]]) -> dict:
     return _joint_state(header, names, [x for root in roots for x in root])
 
 
-def model_json(outcome: SolveOutcome) -> str:
-    """The ``~/model`` text: the identify JSON plus ``stamp`` (grid time, s) and ``samples``."""
+def model_json(outcome: SolveOutcome, stale_reason: str | None = None) -> str:
+    """The ``~/model`` text: the identify JSON plus ``stamp`` (grid time, s), ``samples`` and
+    ``stale`` (false for a fresh model; true, with ``stale_reason``, when the last solve gave no
+    new model and this is the last good one, republished)."""
     doc = dict(outcome.doc or {})
-    doc.update(stamp=outcome.stamp if math.isfinite(outcome.stamp) else None, samples=outcome.samples)
+    doc.update(stamp=outcome.stamp if math.isfinite(outcome.stamp) else None, samples=outcome.samples,
+               stale=stale_reason is not None)
+    if stale_reason is not None:
+        doc["stale_reason"] = stale_reason
     return json.dumps(doc, allow_nan=False)
+
+
+def stale_model_message(last_good: SolveOutcome, outcome: SolveOutcome) -> tuple[str, str, dict]:
+    """The ``~/model`` message republishing ``last_good`` marked stale because ``outcome`` (the
+    latest solve) gave no model; its ``stamp`` stays the grid time of the last good solve."""
+    return "~/model", "std_msgs/msg/String", {"data": model_json(last_good, outcome.reason)}
 
 
 def result_messages(outcome: SolveOutcome, stamp_s: float, frame_id: str = "") -> list[tuple[str, str, dict]]:
@@ -99,9 +110,9 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
                         node_name: str = "hammer_ros") -> dict:
     """diagnostic_msgs/msg/DiagnosticArray with one status ``<node_name>: identification``.
 
-    Level OK after a successful solve, WARN while the window fills or the input is not
-    persistently exciting, ERROR when the method failed. ``level`` is an int (what mcap_ros2
-    writes); ``to_ros_message`` converts it to the ``bytes`` rclpy expects."""
+    Level OK after a successful solve, WARN while the window fills, the input is not
+    persistently exciting or the published model is kept, ERROR when the method failed.
+    ``level`` is an int (what mcap_ros2 writes); ``to_ros_message`` converts it to the ``bytes`` rclpy expects."""
     values: dict[str, Any] = {
         "received_rate_excitation_hz": stats.rate("excitation"),
         "received_rate_response_hz": stats.rate("response"),
@@ -114,10 +125,17 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         "late": stats.late,
         "duplicate": stats.duplicate,
         "dropped": stats.overflow + stats.unstamped,
+        "overflow": stats.overflow,
+        "unstamped": stats.unstamped,
         "gaps": stats.gaps,
+        "clock_resets": stats.clock_resets,
         "window_fill_percent": 100.0 * stats.window_fill,
         "solves": stats.solves,
         "solve_errors": stats.solve_errors,
+        "not_exciting": stats.not_exciting,
+        "kept_published": stats.kept_published,
+        "solve_failures": stats.solve_failures,
+        "solve_exceptions": stats.solve_exceptions,
     }
     if outcome is None:
         level, message = DIAGNOSTIC_WARN, "no solve yet"
@@ -127,10 +145,12 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         if outcome.ok:
             level, message = DIAGNOSTIC_OK, "model identified"
             values.update(fit_percent=outcome.doc.get("fit_percent"), rms=outcome.doc.get("rms"))
-        elif outcome.reason.startswith(("window", "not persistently")):
+        elif outcome.status in ("filling", "not_exciting", "kept"):
             level, message = DIAGNOSTIC_WARN, outcome.reason
         else:
             level, message = DIAGNOSTIC_ERROR, outcome.reason
+        if not outcome.ok and stats.solves:
+            message += "; publishing the last good model as stale"
     status = {
         "level": level,
         "name": f"{node_name}: identification",

@@ -16,12 +16,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 from .bag_io import (
     FLUSH_SAMPLES,
+    BagReadStats,
     ResultWriter,
     bag_message_counts,
     check_fields,
@@ -33,7 +36,7 @@ from .bag_io import (
     stream_specs,
 )
 from .errors import IdentificationError, UsageError
-from .outputs import diagnostics_message, message_class, result_messages, to_ros_message
+from .outputs import diagnostics_message, message_class, result_messages, stale_model_message, to_ros_message
 from .streaming import CLS_STRUCTURES, EngineConfig, SolveOutcome, StreamingEngine
 
 DEFAULT_SOLVE_RATE = 2.0
@@ -58,9 +61,10 @@ def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tupl
     except UsageError as exc:
         name, reason = str(exc).split(":", 1)
         raise UsageError(f"--{name.replace('_', '-')}:{reason}") from None
-    solve_rate = args.solve_rate if args.solve_rate is not None else float(params.get("solve_rate", DEFAULT_SOLVE_RATE))
-    if not (math.isfinite(solve_rate) and solve_rate > 0):
-        raise UsageError(f"--solve-rate: must be > 0 (got {solve_rate})")
+    solve_rate = args.solve_rate if args.solve_rate is not None else params.get("solve_rate", DEFAULT_SOLVE_RATE)
+    option = "--solve-rate" if args.solve_rate is not None else f"{source}: solve_rate"
+    if isinstance(solve_rate, bool) or not isinstance(solve_rate, (int, float)) or not 0 < solve_rate < math.inf:
+        raise UsageError(f"{option}: must be a number > 0 (got {solve_rate!r})")
     return config, solve_rate
 
 
@@ -83,6 +87,35 @@ class Progress:
     def close(self) -> None:
         self.stream.write("\n")
         self.stream.flush()
+
+
+class SignalStop:
+    """While active, SIGINT and SIGTERM only set ``signal`` (the number), so that replay stops at
+    a safe point between messages, solves once more on what it read, finishes the output MCAP
+    and prints the final model instead of dying with a half-written file. Main thread only."""
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def _handle(self, signum: int, frame) -> None:
+        self.signal = signum
+
+    def __enter__(self) -> SignalStop:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for sig, previous in self._previous.items():
+            signal.signal(sig, previous)
+
+    def sleep(self, seconds: float) -> None:
+        """Sleep, waking up within 0.1 s of a signal."""
+        deadline = time.perf_counter() + seconds
+        while self.signal is None and (left := deadline - time.perf_counter()) > 0:
+            time.sleep(min(left, 0.1))
 
 
 class LivePublisher:
@@ -131,63 +164,83 @@ def run(args: argparse.Namespace) -> int:
     check_fields(args.bag, (excitation, response))  # every user mistake before any output
     counts = bag_message_counts(args.bag)
     total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
-    samples = iter_bag_samples(args.bag, excitation, response)
+    read = BagReadStats()
+    samples = iter_bag_samples(args.bag, excitation, response, read)
     engine = StreamingEngine(config)
-    writer = ResultWriter(args.out) if args.out else None
-    publisher = None
     progress = Progress(total)
-    started = time.perf_counter()
     last_ok: SolveOutcome | None = None
     last: SolveOutcome | None = None
     frame_id = str(params.get("frame_id", ""))
+    writer = publisher = None
+    done = 0
+    stop = SignalStop()
     try:
         publisher = LivePublisher() if args.rate is not None else None
+        stop.__enter__()  # after rclpy.init, which installs its own handlers
+        writer = ResultWriter(args.out) if args.out else None
+        started = time.perf_counter()
 
         def solve(bag_time: float) -> None:
             nonlocal last_ok, last
             engine.flush()
             last = engine.solve()
             last_ok = last if last.ok else last_ok
-            stamp = last.stamp if math.isfinite(last.stamp) else bag_time
+            stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
             messages = result_messages(last, stamp, frame_id)
-            messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray",
-                             diagnostics_message(engine.stats, last, stamp, NODE_NAME)))
+            if not last.ok and last_ok is not None:
+                messages.append(stale_model_message(last_ok, last))
+            diagnostics = diagnostics_message(engine.stats, last, stamp, NODE_NAME)
+            diagnostics["status"][0]["values"].extend(_bag_values(read))
+            messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
             for topic, type_name, message in messages:
-                if writer:
+                if writer:  # first into the file: whatever is published is already in it
                     writer.write(node_topic(topic, NODE_NAME), type_name, message, round(stamp * 1e9))
                 if publisher:
                     publisher.publish(topic, type_name, message)
 
         bag_start = next_solve = None
-        done = 0
+        bag_time = float("nan")
         for sample in samples:
             if bag_start is None:
                 bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
             if publisher:  # pace: bag time / rate = wall time since the start
                 wait = (sample.stamp - bag_start) / args.rate - (time.perf_counter() - started)
                 if wait > 0.005:
-                    time.sleep(wait)
-                if not publisher.ok():
-                    raise KeyboardInterrupt
+                    stop.sleep(wait)
+            if stop.signal is not None:
+                break
             if sample.stamp >= next_solve:
                 solve(sample.stamp)
                 next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
             engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
             if engine.buffered >= FLUSH_SAMPLES:
                 engine.flush()
+            bag_time = sample.stamp
             done += 1
             progress.update(done, engine.stats.aligned, engine.stats.solves)
-        solve(float("nan") if bag_start is None else sample.stamp)
+        solve(bag_time)  # the final model, also after a signal
         progress.update(done, engine.stats.aligned, engine.stats.solves, force=True)
     finally:
         progress.close()
-        if writer:
-            writer.close()
-        if publisher:
-            publisher.close()
+        try:
+            if writer:
+                writer.close()
+            if publisher:
+                publisher.close()
+        finally:
+            stop.__exit__()
+    read.report(args.bag)
+    if stop.signal is not None:
+        name = signal.Signals(stop.signal).name
+        print(f"hammer-ros: replay stopped by {name} after {done} of {total} messages; final model solved on the "
+              f"{engine.stats.aligned} samples read" + (f"; {writer.count} messages in {args.out}" if writer else ""),
+              file=sys.stderr)
     wall = time.perf_counter() - started
     if last_ok is None:
         reason = last.reason if last else "no messages"
+        if stop.signal is not None:
+            print(f"hammer-ros: no model identified ({reason})", file=sys.stderr)
+            return 128 + stop.signal
         raise IdentificationError(f"{args.bag}: no model identified ({reason})")
     doc = dict(last_ok.doc)
     doc.update(samples=int(engine.stats.aligned), solves=int(engine.stats.solves), wall_s=round(wall, 4))
@@ -201,4 +254,11 @@ def run(args: argparse.Namespace) -> int:
         print(format_model(doc))
         print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"
               + (f"; {writer.count} messages -> {Path(args.out)}" if writer else ""))
-    return 0
+    return 0 if stop.signal is None else 128 + stop.signal
+
+
+def _bag_values(read: BagReadStats) -> list[dict]:
+    """Diagnostics values of what reading the bag skipped so far."""
+    values = {"bag_damage": len(read.damage), "bag_oversized_messages": read.oversized,
+              "bag_undecodable_messages": read.undecodable, "bag_field_errors": sum(read.field_errors.values())}
+    return [{"key": k, "value": str(v)} for k, v in values.items()]

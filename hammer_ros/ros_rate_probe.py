@@ -5,7 +5,8 @@ rclpy subscriber (EventsExecutor in a spin_once loop), on a private ROS_DOMAIN_I
 
 For each rate R a publisher process sends R messages/s on each of /command and /response
 (std_msgs/Float64, or Float64MultiArray of ``--batch`` samples; reliable, depth 1000) for
-``--seconds`` seconds, once to a bare subscriber (this process) and once to a fresh
+``--seconds`` seconds, once to a bare subscriber (this process, with the node's QoS: best
+effort, depth 1000) and once to a fresh
 ``hammer-ros node`` (whose /diagnostics counters are read back). A rate is sustained when every
 published sample was received. Output: one JSON document per line on stdout. Reusable by
 ``hammer-ros bench`` through :func:`probe`.
@@ -77,7 +78,11 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
 
     counts = {topic: 0 for topic in TOPICS}
     msg_type = Float64 if batch == 1 else Float64MultiArray
-    subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), 1000)
+    from rclpy.qos import QoSProfile, qos_profile_sensor_data
+
+    qos = QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
+                     durability=qos_profile_sensor_data.durability)  # what the node subscribes with
+    subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), qos)
             for topic in TOPICS]
     publisher = _start_publisher(env, rate, seconds, batch)
     while publisher.poll() is None:

@@ -51,13 +51,20 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from .errors import HammerRosError, UsageError
 from .methods import METHODS, IdentifyOptions, identify
-from .result import IdentificationResult
+from .result import IdentificationResult, fit_percent
 
 INFER_SAMPLES = 16  # excitation stamps used to infer the sample rate
 GRID_TOLERANCE = 0.01  # of a sample period: stamps this close to a grid point are on it
 PE_CONDITION_LIMIT = 1e8  # cond(R) above this: input not persistently exciting
+KEEP_MARGIN = 5.0  # fit points by which the published model must beat a new estimate on its window to stay
 CHUNK = 4096  # aligned samples per vectorised update (bounds the temporary lag matrix)
 CLS_STRUCTURES = {"cls-arx": "arx", "cls-markov": "markov"}
+# Documented resource limits (README "Robustness"): memory ~ 16 bytes x (window + 4 window pending
+# per stream) and one solve's regression; work per sample ~ tau_max.
+MAX_WINDOW = 1_000_000
+MAX_TAU_MAX = 2_000
+MAX_ABS_SAMPLE = 1e100  # |x| above this is screened like NaN: cubes of window sums stay finite
+CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older than its stream's newest: clock reset
 STREAMS = ("excitation", "response")
 
 
@@ -78,18 +85,34 @@ class EngineConfig:
     interpolation: str = "zoh"  # or "linear"
     max_gap: float = 0.0  # seconds; 0 = 5 / sample_rate
     min_fill: float = 0.25  # fraction of the window needed before the first solve
+    min_excitation: float = 0.1  # input std needed, relative to the windows behind the published models; 0 = off
 
     def validated(self) -> EngineConfig:
         """self, or a UsageError naming the first invalid field and why."""
         def bad(name: str, why: str) -> UsageError:
             return UsageError(f"{name}: {why} (got {getattr(self, name)!r})")
 
+        for f in fields(self):  # types first: a YAML string or list must not reach the comparisons
+            value, kind = getattr(self, f.name), _FIELD_KINDS[f.name]
+            if value is None and f.name in ("mu", "partition"):
+                continue
+            if kind is int and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
+                raise bad(f.name, "must be an integer")
+            if kind is float and (isinstance(value, bool) or not isinstance(value, (int, float, np.number))):
+                raise bad(f.name, "must be a number")
+            if kind is str and not isinstance(value, str):
+                raise bad(f.name, "must be a string")
+            if kind is tuple and not (isinstance(value, tuple)
+                                      and all(isinstance(c, (int, float)) and math.isfinite(c) for c in value)):
+                raise bad(f.name, "must be a list of numbers")
         if not (math.isfinite(self.sample_rate) and self.sample_rate >= 0):
             raise bad("sample_rate", "must be >= 0 Hz (0 = infer)")
-        if self.tau_max < 1:
-            raise bad("tau_max", "must be >= 1")
+        if not 1 <= self.tau_max <= MAX_TAU_MAX:
+            raise bad("tau_max", f"must be in 1..{MAX_TAU_MAX}")
         if self.window < max(16, 2 * self.tau_max + 2):
             raise bad("window", f"must be >= max(16, 2 tau_max + 2) = {max(16, 2 * self.tau_max + 2)} samples")
+        if self.window > MAX_WINDOW:
+            raise bad("window", f"must be <= {MAX_WINDOW} samples (the raw window is kept in memory)")
         if not 0.0 < self.forgetting <= 1.0:
             raise bad("forgetting", "must be in (0, 1]")
         if self.method not in METHODS:
@@ -112,11 +135,18 @@ class EngineConfig:
             raise bad("max_gap", "must be >= 0 s (0 = 5 sample periods)")
         if not 0.0 < self.min_fill <= 1.0:
             raise bad("min_fill", "must be in (0, 1]")
+        if not 0.0 <= self.min_excitation <= 1.0:
+            raise bad("min_excitation", "must be in [0, 1] (0 = off)")
         return self
 
     def identify_options(self) -> IdentifyOptions:
         return IdentifyOptions(order=self.order, delay=self.delay, mu=self.mu, poly=self.poly,
                                partition=self.partition, tau_max=self.tau_max)
+
+
+_FIELD_KINDS = {"sample_rate": float, "window": int, "forgetting": float, "tau_max": int, "method": str, "order": int,
+                "delay": int, "mu": int, "poly": int, "partition": tuple, "interpolation": str, "max_gap": float,
+                "min_fill": float, "min_excitation": float}
 
 
 @dataclass
@@ -132,11 +162,17 @@ class EngineStats:
     unstamped: int = 0  # batch messages that could not be placed (rate still unknown)
     overflow: int = 0  # pending samples dropped because the other stream stalled
     gaps: int = 0
+    clock_resets: int = 0  # both streams' stamps jumped back (sim time reset, bag loop): alignment restarted
+    aligned_before_reset: int = 0  # ``aligned`` at the last clock reset (the rates count from there)
     window_samples: int = 0
     window_fill: float = 0.0
     sample_rate: float = 0.0  # grid rate in use (configured or inferred), 0 = not yet known
     solves: int = 0
-    solve_errors: int = 0
+    solve_errors: int = 0  # solves that gave no model, for any reason below or the window filling
+    not_exciting: int = 0  # ... because the input was not persistently exciting
+    kept_published: int = 0  # ... because the published model fits the window clearly better
+    solve_failures: int = 0  # ... because the method failed on the data (e.g. an empty PLLS interval)
+    solve_exceptions: int = 0  # ... because of an unexpected exception (logged; ingestion goes on)
     first_stamp: dict = field(default_factory=dict)  # stream -> first accepted stamp
     last_stamp: dict = field(default_factory=dict)  # stream -> newest accepted stamp
     accepted: dict = field(default_factory=lambda: {s: 0 for s in STREAMS})
@@ -150,7 +186,7 @@ class EngineStats:
     def aligned_rate(self) -> float:
         """Grid samples per second of stamp time since the first excitation sample."""
         span = self.last_stamp.get("excitation", 0.0) - self.first_stamp.get("excitation", 0.0)
-        return self.aligned / span if span > 0 else 0.0
+        return (self.aligned - self.aligned_before_reset) / span if span > 0 else 0.0
 
     def as_dict(self) -> dict:
         doc = {k: v for k, v in asdict(self).items() if k not in ("first_stamp", "last_stamp", "accepted")}
@@ -176,6 +212,8 @@ class EngineSnapshot:
     y: np.ndarray
     stamp: float  # grid time of the newest sample (nan before the first)
     stats: EngineStats
+    published: IdentificationResult | None = None  # the model published last (see ``solve_snapshot``)
+    reference_std: float = 0.0  # largest input std of the windows behind the published models
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,6 +228,8 @@ class SolveOutcome:
     solve_seconds: float
     samples: int
     stamp: float
+    status: str = "ok"  # ok | filling | not_exciting | kept | failed (the method rejected the data) | exception
+    input_std: float = float("nan")  # of the window's input
 
 
 class _Stream:
@@ -200,6 +240,7 @@ class _Stream:
         self.x = np.empty(0)
         self.last = -np.inf
         self.previous_message: float | None = None
+        self.jumped: list[tuple[np.ndarray, np.ndarray]] = []  # samples since this stream's stamps jumped back
 
     def append(self, t: np.ndarray, x: np.ndarray, cap: int) -> int:
         self.t = np.concatenate([self.t, t])
@@ -236,12 +277,16 @@ def _lag_products(v: np.ndarray, y: np.ndarray, tau_max: int, weights: np.ndarra
     tau = -T..T, as a (3, 2T+1) array (optionally weighted per centre)."""
     lag = 2 * tau_max + 1
     rows = v.size - 2 * tau_max
-    centre = np.stack([v[tau_max : tau_max + rows], y[tau_max : tau_max + rows]])
-    if weights is not None:
-        centre = centre * weights
-    first = centre @ sliding_window_view(v, lag)
-    second = centre[1] @ sliding_window_view(v * v, lag)
-    return np.vstack([first, second])[:, ::-1]
+    sums = np.zeros((3, lag))
+    for start in range(0, rows, CHUNK):  # numpy copies the lag view for the product: bound it to CHUNK rows
+        stop = min(rows, start + CHUNK)
+        centre = np.stack([v[tau_max + start : tau_max + stop], y[tau_max + start : tau_max + stop]])
+        if weights is not None:
+            centre = centre * weights[start:stop]
+        part = v[start : stop + 2 * tau_max]
+        sums[:2] += centre @ sliding_window_view(part, lag)
+        sums[2] += centre[1] @ sliding_window_view(part * part, lag)
+    return sums[:, ::-1]
 
 
 class _CorrelationWindow:
@@ -402,14 +447,44 @@ class StreamAligner:
         return self.add(stream, stamps, values)
 
     def flush(self) -> int:
-        """Add the buffered messages of both streams; returns how many samples were accepted."""
-        accepted = 0
+        """Add the buffered messages of both streams (interleaved in time, see ``add_both``);
+        returns how many samples were accepted."""
+        batches = {}
         for stream, (stamps, values) in self._buffer.items():
             if stamps:
-                accepted += self.add(stream, np.concatenate(stamps), np.concatenate(values))
+                batches[stream] = (np.concatenate(stamps), np.concatenate(values))
                 stamps.clear()
                 values.clear()
         self.buffered = 0
+        return self.add_both(batches)
+
+    @property
+    def pending_cap(self) -> int:
+        """Samples of one stream held while waiting for the other (older ones are dropped: ``overflow``)."""
+        return max(4 * self.config.window, 100_000)
+
+    def add_both(self, batches: dict[str, tuple[np.ndarray, np.ndarray]]) -> int:
+        """Add (stamps, values) of both streams in pieces of at most pending_cap / 4 samples,
+        always continuing the stream that is behind in time, so that a long batch of one stream
+        (e.g. a 10^6-element array message) is aligned as it goes instead of overflowing the
+        pending buffer while the other stream's batch waits. Returns the samples accepted."""
+        piece = self.pending_cap // 4
+        heads = {name: 0 for name in batches}
+        accepted = 0
+        while heads:
+            def behind(name: str) -> float:
+                t = batches[name][0]
+                return float(t[heads[name]]) if np.isfinite(t[heads[name]]) else -np.inf
+
+            name = min(heads, key=behind)
+            t, x = batches[name]
+            start = heads[name]
+            stop = min(t.size, start + piece)
+            accepted += self.add(name, t[start:stop], x[start:stop])
+            if stop >= t.size:
+                del heads[name]
+            else:
+                heads[name] = stop
         return accepted
 
     def _count_received(self, stream: str, n: int) -> None:
@@ -425,11 +500,73 @@ class StreamAligner:
         if t.size != x.size:
             raise ValueError(f"{stream}: {t.size} stamps for {x.size} samples")
         self._count_received(stream, x.size)
-        finite = np.isfinite(t) & np.isfinite(x)
+        with np.errstate(invalid="ignore"):
+            finite = np.isfinite(t) & np.isfinite(x) & (np.abs(x) <= MAX_ABS_SAMPLE)
         self.stats.nan_skipped += int(x.size - finite.sum())
-        t, x = t[finite], x[finite]
+        return self._add_screened(stream, t[finite], x[finite])
+
+    def _add_screened(self, stream: str, t: np.ndarray, x: np.ndarray) -> int:
+        """Clock-jump handling: samples more than the reset threshold older than the stream's
+        newest stamp are held (``jumped``) until the other stream jumps back too (then both
+        restart there: ``clock_resets``) or this one goes on past its newest stamp (then they
+        were a re-sent stretch: ``late``)."""
         s = self._streams[stream]
+        if t.size == 0:
+            return 0
+        if s.jumped and t[0] > s.last:
+            self._drop_jumped(s)
         newest = np.maximum.accumulate(np.concatenate([[s.last], t]))[:-1]
+        back = np.flatnonzero(t < newest - self._reset_threshold())
+        if back.size == 0 and not s.jumped:
+            return self._accept(stream, t, x, newest)
+        j = int(back[0]) if back.size else 0
+        accepted = self._accept(stream, t[:j], x[:j], newest[:j])
+        s.jumped.append((t[j:], x[j:]))
+        held = sum(part.size for part, _ in s.jumped)
+        while held > self.pending_cap:  # bounded: the oldest held samples go first
+            held -= s.jumped[0][0].size
+            self.stats.late += s.jumped.pop(0)[0].size
+        other = self._streams[STREAMS[1 - STREAMS.index(stream)]]
+        if other.jumped:  # both clocks went back (sim time reset, bag loop): restart on the new timeline
+            self._reset_clock()
+            return accepted + self._accept_jumped()
+        return accepted
+
+    def _reset_threshold(self) -> float:
+        gap = self.config.max_gap or (5.0 / self.rate if self.rate else 0.0)
+        return max(CLOCK_RESET_SECONDS, gap)
+
+    def _drop_jumped(self, s: _Stream) -> None:
+        self.stats.late += sum(t.size for t, _ in s.jumped)
+        s.jumped.clear()
+
+    def _reset_clock(self) -> None:
+        """Both streams jumped back by more than the reset threshold (a re-sent stretch of one
+        stream is only ``late``): restart the alignment of both streams (the window restarts as
+        after a gap) with the samples since their jumps."""
+        self.stats.clock_resets += 1
+        self.stats.aligned_before_reset = self.stats.aligned
+        for name, s in self._streams.items():
+            s.clear()
+            s.last = -np.inf
+            self.stats.first_stamp.pop(name, None)
+            self.stats.accepted[name] = 0
+        self._anchor, self._k, self._last_grid = None, 0, -np.inf
+        if self._segment_samples:
+            self._segment_samples = 0
+            self._restart()
+
+    def _accept_jumped(self) -> int:
+        accepted = 0
+        for stream, s in self._streams.items():
+            parts, s.jumped = s.jumped, []
+            if parts:
+                t, x = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+                accepted += self._accept(stream, t, x, np.maximum.accumulate(np.concatenate([[-np.inf], t]))[:-1])
+        return accepted
+
+    def _accept(self, stream: str, t: np.ndarray, x: np.ndarray, newest: np.ndarray) -> int:
+        s = self._streams[stream]
         accept = t > newest
         self.stats.duplicate += int(np.count_nonzero(t == newest))
         self.stats.late += int(np.count_nonzero(t < newest))
@@ -439,7 +576,7 @@ class StreamAligner:
         self.stats.accepted[stream] += t.size
         self.stats.first_stamp.setdefault(stream, float(t[0]))
         self.stats.last_stamp[stream] = float(t[-1])
-        self.stats.overflow += s.append(t, x, cap=max(4 * self.config.window, 100_000))
+        self.stats.overflow += s.append(t, x, cap=self.pending_cap)
         self._emit()
         return int(t.size)
 
@@ -520,6 +657,8 @@ class StreamingEngine:
         self._corr = _CorrelationWindow(self._config.window, self._config.tau_max, self._config.forgetting)
         self._aligner = StreamAligner(self._config, self.stats, self._append_aligned, self._corr.reset)
         self._stamp = float("nan")
+        self._published: IdentificationResult | None = None
+        self._reference_std = 0.0
 
     @property
     def config(self) -> EngineConfig:
@@ -543,6 +682,7 @@ class StreamingEngine:
             changes["partition"] = tuple(float(c) for c in changes["partition"])
         new = replace(self._config, **changes).validated()
         old, self._config = self._config, new
+        self._published, self._reference_std = None, 0.0  # new settings: the next estimate is published
         self._aligner.config = new
         if (new.window, new.tau_max, new.forgetting) != (old.window, old.tau_max, old.forgetting):
             self._corr.rebuild(new.window, new.tau_max, new.forgetting)
@@ -593,7 +733,7 @@ class StreamingEngine:
         v, y = self._corr.raw()
         phi_vv, phi_yv, phi_yvv = self._corr.correlations()
         return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
-                              self.stats.copy())
+                              self.stats.copy(), self._published, self._reference_std)
 
     def solve(self) -> SolveOutcome:
         """Solve on the current window (synchronously) and count it in the stats."""
@@ -605,8 +745,18 @@ class StreamingEngine:
         """Count a solve (done here or in a worker thread) in the stats."""
         if outcome.ok:
             self.stats.solves += 1
-        else:
-            self.stats.solve_errors += 1
+            self._published = outcome.result
+            self._reference_std = max(self._reference_std, outcome.input_std)
+            return
+        self.stats.solve_errors += 1
+        if outcome.status == "not_exciting":
+            self.stats.not_exciting += 1
+        elif outcome.status == "kept":
+            self.stats.kept_published += 1
+        elif outcome.status == "failed":
+            self.stats.solve_failures += 1
+        elif outcome.status == "exception":
+            self.stats.solve_exceptions += 1
 
 
 def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) -> float:
@@ -633,30 +783,61 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     started = time.perf_counter()
     cfg, v, y = snapshot.config, snapshot.v, snapshot.y
 
-    def outcome(ok, reason, result=None, doc=None, cond=float("nan")) -> SolveOutcome:
-        return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp)
+    spread = float("nan")
+
+    def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok") -> SolveOutcome:
+        return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp,
+                            status, spread)
 
     needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
     if v.size < needed or snapshot.weight <= 0:
-        return outcome(False, f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)")
-    cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
+        return outcome(False, f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)",
+                       status="filling")
+    with np.errstate(all="ignore"):
+        cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
     spread = float(np.std(v))
     if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
         return outcome(False, f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
-                       cond=cond)
+                       cond=cond, status="not_exciting")
+    reference = snapshot.reference_std
+    if spread < cfg.min_excitation * reference:
+        return outcome(False, f"not persistently exciting (input std {spread:.3g} is {100 * spread / reference:.1f} % "
+                              f"of the {reference:.3g} behind the published model, min_excitation "
+                              f"{cfg.min_excitation:g})", cond=cond, status="not_exciting")
     try:
-        if cfg.method in CLS_STRUCTURES:
-            from .correlation_least_squares import cls_from_correlations
-
-            result = cls_from_correlations(snapshot.phi_vv, snapshot.phi_yv, v, y, cfg.identify_options(),
-                                           structure=CLS_STRUCTURES[cfg.method])
-        else:
-            result = identify(cfg.method, v, y, cfg.identify_options())
         with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
+            if cfg.method in CLS_STRUCTURES:
+                from .correlation_least_squares import cls_from_correlations
+
+                result = cls_from_correlations(snapshot.phi_vv, snapshot.phi_yv, v, y, cfg.identify_options(),
+                                               structure=CLS_STRUCTURES[cfg.method])
+            else:
+                result = identify(cfg.method, v, y, cfg.identify_options())
             doc = result.to_json(v, y)
+            kept = _published_fits_better(snapshot.published, v, y, doc.get("fit_percent"))
     except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
-        return outcome(False, f"{cfg.method}: {exc}", cond=cond)
+        return outcome(False, f"{cfg.method}: {exc}", cond=cond, status="failed")
+    except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
+        return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", cond=cond,
+                       status="exception")
     finite = np.all(np.isfinite(result.linear.a)) and np.all(np.isfinite(result.linear.b))
     if not finite:
-        return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond)
+        return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond, status="failed")
+    if kept:
+        return outcome(False, f"kept the published model: it fits the window better ({kept})", cond=cond,
+                       status="kept")
     return outcome(True, "", result, doc, cond)
+
+
+def _published_fits_better(published: IdentificationResult | None, v: np.ndarray, y: np.ndarray,
+                           new_fit: float | None) -> str:
+    """'' or why the published model stays: on a window that says little (a fading excitation,
+    noise), a new estimate can be far off; it replaces the published model unless the published
+    model simulates the window better by more than KEEP_MARGIN fit points."""
+    if published is None:
+        return ""
+    old_fit = fit_percent(y, published.simulate(v))
+    new = -np.inf if new_fit is None else new_fit
+    if not np.isfinite(old_fit) or new >= old_fit - KEEP_MARGIN:
+        return ""
+    return f"fit {old_fit:.1f} % vs {new:.1f} % for the new estimate"

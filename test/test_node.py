@@ -79,8 +79,8 @@ def test_model_poles_converge_to_the_plant(live):
     assert model["method"] == "cls-markov" and model["order"] == 3
     assert set(model) >= {"poles", "zeros", "a", "b", "markov", "nonlinearity", "fit_percent", "rms"}
     assert root_rss_error(roots(truth["zeros"]), roots(model["zeros"])) < 0.1
-    diagnostics = live.wait_for(lambda: live.diagnostics and live.diagnostics[-1]["level"] == 0 and live.diagnostics[-1],
-                                what="diagnostics of a successful solve")
+    diagnostics = live.wait_for(lambda: [d for d in live.diagnostics[-1:] if d["level"] == 0],
+                                what="diagnostics of a successful solve")[0]
     assert diagnostics["message"] == "model identified"
     assert float(diagnostics["received_rate_excitation_hz"]) == pytest.approx(RATE, rel=0.05)
     assert int(diagnostics["excitation_field_errors"]) == 0 and int(diagnostics["response_field_errors"]) == 0

@@ -7,8 +7,9 @@
    validation residual, spectral lines on the estimation residual, windows over the whole
    record).
 3. The causes whose test failed are ranked by the share of the residual their signature
-   explains; the extension of each of the best ``MAX_CANDIDATES`` is fitted on the
-   estimation part and simulated on the validation part.
+   explains; the extension of each of the best ``MAX_CANDIDATES`` (that explain at least
+   ``RELATIVE_SHARE`` of what the best one explains) is fitted on the estimation part and
+   simulated on the validation part.
 4. The cause is the candidate with the largest validation gain (baseline RMS / extended
    RMS), if that gain is at least ``MIN_GAIN``; otherwise ``none``. A cause is thus named
    only when its evidence supports it and its extension improves the validation fit.
@@ -29,6 +30,7 @@ from .split import Split, split_record
 
 MIN_GAIN = 1.05
 MAX_CANDIDATES = 4
+RELATIVE_SHARE = 0.2
 
 
 @dataclass(frozen=True)
@@ -124,6 +126,8 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
 
     ctx = Context(split, base, lines, windows)
     supported = sorted((t for t in cause_tests if t.supports), key=lambda t: -t.explained)[:MAX_CANDIDATES]
+    if supported:  # causes whose signature explains little next to the best one are not fitted
+        supported = [t for t in supported if t.explained >= RELATIVE_SHARE * supported[0].explained]
     baseline_score = _score("hammerstein", split.y_val, x_val)
     extensions: dict[str, ExtendedModel] = {}
     gains: dict[str, float] = {}

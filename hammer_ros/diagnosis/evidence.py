@@ -7,8 +7,8 @@ Each cause leaves its own first-order signature in the baseline's simulation err
 |---|---|
 | output_nonlinearity | static functions of x: hinges (x - k_j)_+ at quantiles of x |
 | output_feedback | the same hinges passed through G: G[(x - k_j)_+] (y = G[F(v) - h(y)]) |
-| parallel_path | linear dynamics of v itself: lags and first-order filters of v |
-| unmodeled_dynamics | linear dynamics of F(v): lags and first-order filters of F(v) |
+| parallel_path | linear dynamics of v itself: lags 0..11 and first-order filters of v |
+| unmodeled_dynamics | linear dynamics of F(v): lags 0..11 and first-order filters of F(v) |
 | backlash | G[F'(v) s], s = sign of the last input change (play shifts v by -w/2 s) |
 | periodic_disturbance | sinusoids at lines of the spectrum of e that v and x do not have |
 | time_varying | a gain / lag / residual level that changes from window to window |
@@ -37,6 +37,7 @@ from .residual_tests import Evidence
 LEVEL = 0.99
 PREWHITEN_ORDER = 10
 DYNAMIC_POLES = (0.5, 0.8, 0.9, 0.95, 0.98)
+FIR_LAGS = 12
 MAX_LINES = 6
 
 
@@ -100,8 +101,9 @@ def hinges(x: np.ndarray, count: int = 5) -> np.ndarray:
 
 
 def dynamics_basis(s: np.ndarray) -> np.ndarray:
-    """Lags 0..3 of s and its first-order low-pass filters (1 - p)/(1 - p q^-1) at DYNAMIC_POLES."""
-    lags = np.column_stack([np.concatenate([np.full(i, s[0]), s[: s.size - i]]) for i in range(4)])
+    """Lags 0..FIR_LAGS-1 of s (any dynamics that settles within them, resonances included)
+    and its first-order low-pass filters (1 - p)/(1 - p q^-1) at DYNAMIC_POLES (slow modes)."""
+    lags = np.column_stack([np.concatenate([np.full(i, s[0]), s[: s.size - i]]) for i in range(FIR_LAGS)])
     smooth = [signal.lfilter([1.0 - p], [1.0, -p], s, zi=[p * s[0]])[0] for p in DYNAMIC_POLES]
     return np.column_stack([lags, *smooth])
 
@@ -179,12 +181,12 @@ def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = L
     threshold = float(np.log(0.5 * n / (1.0 - level)) / np.log(2.0))
     grid = 2 * np.pi * np.arange(ratio.size) / nfft
     lobe = int(np.ceil(3 * bins_per_natural))
-    reference_ratio = np.max([ndimage.maximum_filter(_line_ratio(r, nfft, half), size=2 * lobe + 1)
-                              for r in references], axis=0)
-    peaks = signal.argrelmax(ratio, order=lobe)[0]
-    ok = (ratio[peaks] > threshold) & (reference_ratio[peaks] < threshold) & (peaks > 3 * lobe)
-    peaks = peaks[ok][np.argsort(ratio[peaks[ok]])[::-1]][:MAX_LINES]
-    frequencies = np.array([_refine_peak(ratio, p) * 2 * np.pi / nfft for p in peaks])
+    reference_lines = np.concatenate([_peaks(_line_ratio(r, nfft, half), threshold, lobe) for r in references])
+    candidates = _peaks(ratio, threshold, lobe)
+    # a reference line within one DFT bin (2 pi / N) is the same line
+    distinct = [f for f in candidates if not np.any(np.abs(reference_lines - f) < 2 * np.pi / n)]
+    frequencies = np.array(sorted(distinct, key=lambda f: -ratio[int(round(f * nfft / (2 * np.pi)))])[:MAX_LINES])
+    peaks = np.array([int(round(f * nfft / (2 * np.pi))) for f in frequencies], dtype=int)
     explained = 0.0
     if frequencies.size:
         k = np.arange(n)
@@ -194,6 +196,15 @@ def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = L
         explained = max(0.0, 1.0 - float(np.sum((e - fit) ** 2)) / float(np.sum(e0**2)))
     strongest = float(ratio[peaks[0]]) if peaks.size else float(np.max(ratio[3 * lobe :]))
     return LineTest(frequencies, strongest, threshold, explained, ratio, grid)
+
+
+def _peaks(ratio: np.ndarray, threshold: float, lobe: int) -> np.ndarray:
+    """Frequencies (rad/sample, interpolated) of the local maxima of a periodogram ratio above
+    ``threshold``, away from 0 (3 main-lobe widths)."""
+    nfft = 2 * (ratio.size - 1)
+    peaks = signal.argrelmax(ratio, order=lobe)[0]
+    peaks = peaks[(ratio[peaks] > threshold) & (peaks > 3 * lobe)]
+    return np.array([_refine_peak(ratio, p) * 2 * np.pi / nfft for p in peaks])
 
 
 def _refine_peak(p: np.ndarray, i: int) -> float:

@@ -37,7 +37,7 @@ from .split import Split
 
 MAX_EXTRA_ORDER = 4
 MAX_ORDER = 8
-SLOW_FIT_SAMPLES = 3000  # the sample-by-sample feedback loop is refined on at most this many samples
+SLOW_FIT_SAMPLES = 2000  # the sample-by-sample feedback loop is refined on at most this many samples
 OUTPUT_MAP_BREAKPOINTS = 6
 FEEDBACK_BREAKPOINTS = 5
 
@@ -91,11 +91,13 @@ def _order_details(model: HammersteinModel) -> dict:
 
 
 def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel | None:
-    """Orders n+1 .. n+4 (at most 8) on the baseline's partition; the one with the smallest
-    simulation-error BIC on the estimation data, if it beats the baseline's."""
+    """Orders n+1 .. n+4 (at most 8) on the baseline's partition, upwards until two orders in a
+    row do not improve; the one with the smallest simulation-error BIC on the estimation data,
+    if it beats the baseline's."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
     best, best_score = None, bic(y[skip:], base.simulate(v)[skip:], base.parameter_count())
+    misses = 0
     for order in range(base.order + 1, min(base.order + MAX_EXTRA_ORDER, MAX_ORDER) + 1):
         try:
             model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False)
@@ -103,7 +105,11 @@ def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel | None:
             continue
         score = bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())
         if score < best_score:
-            best, best_score = model, score
+            best, best_score, misses = model, score, 0
+        else:
+            misses += 1
+            if misses == 2:  # two orders in a row without improvement: stop
+                break
     if best is None:
         return None
     return ExtendedModel("unmodeled_dynamics", f"hammerstein order {best.order}", s.validation_output(best.simulate),

@@ -255,8 +255,9 @@ def _output_map(rng, x: np.ndarray):
         centre, half = rng.uniform(-0.3, 0.3), rng.uniform(0.25, 0.6)
         z = np.where(w > centre + half, w - half, np.where(w < centre - half, w + half, centre))
         label = f"dead zone half-width {half:.2f} std"
-    elif kind == "abs":
-        centre = np.quantile(w, rng.uniform(0.25, 0.6))
+    elif kind == "abs":  # a rectifier off the middle of the signal (at the median the input-output
+        # correlation of every order-one statistic vanishes and no Hammerstein start sees it)
+        centre = np.quantile(w, rng.uniform(0.2, 0.4) if rng.random() < 0.5 else rng.uniform(0.6, 0.8))
         z, label = np.abs(w - centre), f"|x - {centre:.2f}|"
     elif kind == "compressive":
         gamma = rng.uniform(0.35, 0.65)
@@ -297,7 +298,7 @@ def _extra_dynamics(rng, bandwidth: float) -> tuple[LinearModel, str]:
         resonance = LinearModel([np.sum(den)], den)
         b = (1 - weight) * den + weight * np.concatenate([resonance.b, [0.0, 0.0]])
         return LinearModel(b, den), f"resonance r={radius:.2f} angle={angle:.2f} weight {weight:.2f}"
-    pole, weight = rng.uniform(0.93, 0.985), rng.uniform(0.3, 0.6)
+    pole, weight = rng.uniform(0.9, 0.97), rng.uniform(0.35, 0.6)
     b = (1 - weight) * np.array([1.0, -pole]) + weight * np.array([1.0 - pole, 0.0])
     return LinearModel(b, [1.0, -pole]), f"slow mode pole {pole:.3f} weight {weight:.2f}"
 
@@ -321,9 +322,14 @@ def generate_case(cause: str, seed: int, n: int = 4000) -> GeneratedCase:
         return scale * shape((np.asarray(x) - centre) / scale)
 
     clean, nominal, effect = _effect(cause, rng, linear, fmap, v, bandwidth, order)
+    effect_size = float(np.sqrt(np.mean((clean - linear.simulate(fmap(v)))[PREROLL:] ** 2)))
     clean = clean[PREROLL:] + rng.uniform(-1.0, 1.0) * np.std(clean)
     level = rng.uniform(0.01, 0.05)
-    noise, noise_kind = _noise(rng, n, level * float(np.std(clean)))
+    noise_std = level * float(np.std(clean))
+    if cause != "none":  # the effect stays visible: its size is at least 2.5 noise standard deviations
+        noise_std = min(noise_std, 0.4 * effect_size)
+        level = noise_std / float(np.std(clean))
+    noise, noise_kind = _noise(rng, n, noise_std)
     poles = ", ".join(f"{p.real:.2f}{p.imag:+.2f}j" if abs(p.imag) > 1e-9 else f"{p.real:.2f}" for p in linear.poles)
     description = (f"{cause}: {effect}; G poles [{poles}], F {shape_label}, input {input_kind}, "
                    f"noise {100 * level:.1f} % {noise_kind}")

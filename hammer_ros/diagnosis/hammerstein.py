@@ -17,10 +17,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import signal
 
 from ..errors import IdentificationError
 from ..linear import LinearModel
-from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map
+from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map, rank_one_factors
+from ..regression import build_regression, solve_least_squares
 from ..static_maps import PiecewiseLinearMap
 from .simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
 
@@ -120,6 +122,32 @@ def plls_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int, parti
                             f.slopes, float(f.values[primary - 1]))
 
 
+def steiglitz_mcbride(model: HammersteinModel, v: np.ndarray, y: np.ndarray, iterations: int = 4) -> HammersteinModel:
+    """PLLS on data prefiltered by 1/A_hat, repeated (Steiglitz & McBride 1965): each pass
+    solves the PLLS regression of paper 001 (eq. 23: y/A_hat on eta(v)/A_hat and the
+    prefiltered constant) and factors it by rank one (eqs. 35-38). At convergence the equation
+    error is the simulation error, so the estimate loses the equation-error bias that output
+    noise causes: a better start for the refinement than PLLS alone, in the cases where it is
+    (``fit_hammerstein`` keeps the better of the two)."""
+    eta = model.basis(v)
+    skip = transient_samples(model.linear.poles, v.size)
+    a = model.a
+    current = model
+    for _ in range(iterations):
+        reg = build_regression(signal.lfilter([1.0], a, y), signal.lfilter([1.0], a, eta, axis=0),
+                               model.order, model.delay)
+        constant = signal.lfilter([1.0], a, np.ones(v.size))[reg.rows]
+        theta = solve_least_squares(np.column_stack([reg.phi, constant])[skip:], reg.target[skip:])
+        a_new, coefficients = reg.split(theta[:-1])
+        b, mu = rank_one_factors(coefficients, None, a_new)
+        if not np.all(np.isfinite(b)) or abs(np.sum(b)) < 1e-12:
+            return current
+        a = stabilised_denominator(np.concatenate([[1.0], a_new]))
+        current = replace(model, a=a, b=np.concatenate([np.zeros(model.delay), b]), slopes=mu,
+                          kappa=float(theta[-1] / np.sum(b)))
+    return current
+
+
 def transient_samples(model_poles: np.ndarray, samples: int) -> int:
     """Samples left out of a fit's cost at the start of a record (the unknown initial state
     decays in them): the settling time of the slowest pole, at most a fifth of the record."""
@@ -154,12 +182,29 @@ def fit_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int,
     a dead zone or a relay jump is not smeared over the gap between two quantiles."""
     if partition is None:
         partition = quantile_partition(v, default_breakpoints(v.size))
-    model = refine_hammerstein(plls_hammerstein(v, y, order, delay, partition), v, y)
+    start = plls_hammerstein(v, y, order, delay, partition)
+    skip = transient_samples(start.linear.poles, v.size)
+    candidates = [start, steiglitz_mcbride(start, v, y)]
+    costs = [float(np.sum((y - m.simulate(v))[skip:] ** 2)) for m in candidates]
+    model = refine_hammerstein(candidates[int(np.nanargmin(costs))], v, y)
     if not free_knots:
         return model
     tail = slice(max(0, v.size - FREE_KNOT_SAMPLES), None)
-    model = refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True)
+    model = prune_breakpoints(refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True), v)
     return refine_hammerstein(model, v, y, iterations=10) if tail.start else model
+
+
+def prune_breakpoints(model: HammersteinModel, v: np.ndarray) -> HammersteinModel:
+    """The same map on the data without the breakpoints that leave an interval empty (free
+    breakpoints can wander out of the data or onto each other): slopes and offset re-fitted to
+    the map's values on v, which they reproduce exactly between the kept breakpoints."""
+    kept = drop_empty_intervals(v, model.partition)
+    if kept.size == model.partition.size:
+        return model
+    primary = max(1, kept.size // 2)
+    basis = np.column_stack([point_slope_basis(v, kept, primary), np.ones(v.size)])
+    theta = solve_least_squares(basis, model.static(v))
+    return replace(model, partition=kept, primary=primary, slopes=theta[:-1], kappa=float(theta[-1]))
 
 
 def bic(y: np.ndarray, y_sim: np.ndarray, parameters: int) -> float:

@@ -31,10 +31,11 @@ def steady_state_filter(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarr
     and output g = B(1)/A(1) is z_i = sum_{j>i} (b_j - a_j g), i = 0..n-1.
     """
     x = np.asarray(x, dtype=float)
-    length = max(len(a), len(b))
-    b = np.pad(np.asarray(b, dtype=float), (0, length - len(b)))
-    a = np.pad(np.asarray(a, dtype=float), (0, length - len(a)))
-    if x.size == 0 or length == 1 or abs(a.sum()) < 1e-9 * np.abs(a).sum():
+    b, a = np.asarray(b, dtype=float), np.asarray(a, dtype=float)
+    if a.size != b.size:
+        length = max(a.size, b.size)
+        b, a = (np.concatenate([c, np.zeros(length - c.size)]) for c in (b, a))
+    if x.size == 0 or a.size == 1 or abs(a.sum()) < 1e-9 * np.abs(a).sum():
         return signal.lfilter(b, a, x)
     gain = b.sum() / a.sum()
     zi = np.cumsum((b[1:] - a[1:] * gain)[::-1])[::-1] * x[0]
@@ -89,6 +90,8 @@ def refine(simulate: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, y: 
     def residuals(theta: np.ndarray) -> np.ndarray:
         with np.errstate(all="ignore"):
             r = np.asarray(simulate(theta), dtype=float)[skip:] - y
+            if np.max(np.abs(r)) < limit:  # also False for nan
+                return r
         return np.clip(np.nan_to_num(r, nan=limit, posinf=limit, neginf=-limit), -limit, limit)
 
     theta0 = np.asarray(theta0, dtype=float)

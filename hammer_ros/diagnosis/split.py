@@ -6,10 +6,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from ..errors import UsageError
 
 MIN_SAMPLES = 60
+INITIAL_SAMPLES = 3  # measured outputs averaged for the operating point a separate record starts at
+REST_SAMPLES = 1000  # constant-input samples after which a model is taken to be at rest
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,10 +41,12 @@ class Split:
         return np.concatenate([self.y_est, self.y_val])
 
     def validation_output(self, simulate: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """The model's free-run output on the validation samples."""
+        """The model's free-run output on the validation samples: continuing its own output
+        over the estimation samples, or (separate record) from rest at the operating point of
+        the first measured outputs (``from_rest_at``)."""
         if self.continuous:
             return simulate(self.v_all)[self.n_est :]
-        return simulate(self.v_val)
+        return from_rest_at(simulate, self.v_val, float(np.mean(self.y_val[:INITIAL_SAMPLES])), self.v_est)
 
     def estimation_tail(self, samples: int) -> Split:
         """The same split with only the last ``samples`` estimation samples (to bound the cost
@@ -49,6 +54,26 @@ class Split:
         if samples >= self.n_est:
             return self
         return Split(self.v_est[-samples:], self.y_est[-samples:], self.v_val, self.y_val, self.continuous)
+
+
+def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0: float,
+                 inputs: np.ndarray) -> np.ndarray:
+    """simulate(v) started at rest at the constant input u0 whose steady-state output is
+    closest to y0 (u0 searched over the range of ``inputs``): the unknown initial state of a
+    separate record, taken as the equilibrium that explains its first measured output."""
+    lo, hi = float(np.min(inputs)), float(np.max(inputs))
+    grid = np.linspace(lo, hi, 41)
+    levels = simulate(np.repeat(grid, REST_SAMPLES))[REST_SAMPLES - 1 :: REST_SAMPLES]
+    distance = np.abs(np.nan_to_num(levels, nan=np.inf) - y0)
+    i = int(np.argmin(distance))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    if b > a:
+        found = minimize_scalar(lambda u0: abs(simulate(np.full(REST_SAMPLES, u0))[-1] - y0), bounds=(a, b),
+                                method="bounded", options={"xatol": 1e-4 * (hi - lo + 1e-12), "maxiter": 25})
+        u0 = float(found.x) if found.fun <= distance[i] else float(grid[i])
+    else:
+        u0 = float(grid[i])
+    return simulate(np.concatenate([np.full(REST_SAMPLES, u0), v]))[REST_SAMPLES:]
 
 
 def split_record(v: np.ndarray, y: np.ndarray, fraction: float = 0.7) -> Split:

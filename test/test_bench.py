@@ -1,0 +1,62 @@
+"""Smoke test of the ``hammer-ros bench`` machinery on tiny sizes (no timing thresholds: speed is
+the benchmark's business, not the tests'). The live-node section needs DDS and is left to
+``test_node`` / ``ros_rate_probe``."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from hammer_ros import bench
+from hammer_ros.correlation import cross_correlation, weighted_cross_correlation
+
+TINY = bench.Plan(
+    name="tiny", repeats=1, ingest_samples=6000, ingest_taus=(5, 20), ingest_windows=(1000, 3000),
+    ingest_forgetting=(1.0, 0.99), ingest_chunk=500, node_rates={}, node_seconds=0.0,
+    replay_messages={1: 600, 20: 40}, replay_repeats=1, solve_windows=(600,), solve_repeats=3, slow_solve_repeats=1,
+    peer_frols=((2, 2, 4),), memory_windows=(2000,),
+)
+
+
+def test_batch_fft_reference_is_paper_000_eq_8():
+    v, y = bench.hammerstein_record(700, seed=3)
+    phi = bench.batch_correlations_fft(v, y, 12)
+    assert np.allclose(phi[0], cross_correlation(v, v, 12), atol=1e-15)
+    assert np.allclose(phi[1], cross_correlation(v, y, 12), atol=1e-15)
+    assert np.allclose(phi[2], cross_correlation(v * v, y, 12), atol=1e-15)
+    weighted = bench.batch_correlations_fft(v, y, 12, forgetting=0.98)
+    assert np.allclose(weighted[1], weighted_cross_correlation(v, y, 12, 0.98), atol=1e-15)
+
+
+def test_bench_sections_run_on_tiny_sizes():
+    sections = bench.run_sections(TINY, ("ingest", "replay", "solve", "peers", "memory"))
+    ingest = sections["ingest"].rows
+    assert len(ingest) == 2 * 2 * 2  # tau_max x W x (sliding, forgetting)
+    for row in ingest:
+        assert row["engine"] > 0 and row["reference"] > 0 and row["ratio"] > 0
+        assert row["check"] < 1e-12  # the engine's sums are the batch correlations of its window
+    replay = sections["replay"].rows
+    assert len(replay) == 2 * len(bench.REPLAY_MODES)
+    assert all(r["replay"] > 0 and r["reference"] > 0 for r in replay)
+    solve = sections["solve"].rows
+    assert {r["method"] for r in solve} >= {"cls-arx", "cls-markov", "plls-hammerstein", "plls-feedback",
+                                             "plls-hammerstein-feedback", "diagnose"}
+    assert all(r["p50"] <= r["p99"] for r in solve if "p50" in r)
+    assert all("reference" in r for r in solve if r["method"].startswith("cls") and "p50" in r)
+    peers = sections["peers"].rows
+    g1 = {r["method"]: r for r in peers if r["case"].startswith("G1")}
+    assert g1["cls-markov"]["nrmse"] < 0.3  # the identified model simulates the plant
+    if bench.sysidentpy_available():
+        assert g1["FROLS"]["seconds"] > 0 and g1["cls-markov"]["speedup"] > 0
+    else:
+        assert any("SysIdentPy rows skipped" in note for note in sections["peers"].notes)
+    memory = sections["memory"].rows
+    assert memory[0]["window"] == 2000 and memory[0]["reference"] > 0 and memory[0]["solve"] >= 0
+
+    table = bench.goals(sections)
+    assert {r["goal"].split(" ")[0] for r in table.rows} >= {"engine", "replay", "CLS"}
+    text = bench.markdown(bench.machine(), sections, table, TINY, 1.0)
+    for section in sections.values():
+        assert section.title in text
+    json.dumps(bench._json_safe({"sections": [s.to_json() for s in sections.values()]}), allow_nan=False)

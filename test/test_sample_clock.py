@@ -1,0 +1,59 @@
+"""ArrivalStamper: stamps for unstamped messages from jittered, bursty receive times."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hammer_ros.sample_clock import ArrivalStamper
+
+RATE = 500.0
+
+
+def receive_times(n: int, rng, start: float = 1000.0, per_message: int = 1) -> np.ndarray:
+    """Receive times of n messages sent every per_message/RATE s: latency 0.1-0.4 ms, plus
+    stalls of the subscriber (every message of a 10-40 ms stall is delivered at its end)."""
+    sent = start + (np.arange(n) + 1) * per_message / RATE - 1 / RATE
+    received = sent + rng.uniform(1e-4, 4e-4, n)
+    for stall_start in rng.choice(np.arange(50, n - 50), 20, replace=False):
+        stall_end = received[stall_start] + rng.uniform(0.01, 0.04)
+        inside = (received >= received[stall_start]) & (received < stall_end)
+        received[inside] = stall_end + 1e-6 * np.arange(inside.sum())
+    return received
+
+
+def test_jitter_and_stalls_never_move_a_sample(rng):
+    stamper = ArrivalStamper(RATE)
+    t_u = receive_times(3000, rng)
+    t_y = t_u + rng.uniform(0.0, 3e-4, t_u.size)  # the response arrives a little later
+    u = np.concatenate([stamper.stamps("excitation", t, 1) for t in t_u])
+    y = np.concatenate([stamper.stamps("response", t, 1) for t in t_y])
+    np.testing.assert_allclose(np.diff(u), 1 / RATE, rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(u, y)  # sample k of both streams on the same grid point
+    assert stamper.restarts == 0
+    assert 0 <= t_u[0] - u[0] < 1e-3  # anchored on the least delayed arrivals
+
+
+def test_batches_put_the_last_sample_at_the_arrival(rng):
+    stamper = ArrivalStamper(RATE)
+    t = receive_times(300, rng, per_message=10)
+    stamps = np.concatenate([stamper.stamps("excitation", r, 10) for r in t])
+    np.testing.assert_allclose(np.diff(stamps), 1 / RATE, rtol=0, atol=1e-7)
+    assert 0 <= t[0] - stamps[9] < 1e-3
+
+
+def test_a_publisher_pause_restarts_the_count(rng):
+    stamper = ArrivalStamper(RATE, resync=0.5)
+    before = [stamper.first_stamp("excitation", t, 1) for t in receive_times(500, rng)]
+    resumed_at = before[-1] + 2.0
+    after = [stamper.first_stamp("excitation", t, 1) for t in receive_times(500, rng, start=resumed_at)]
+    assert stamper.restarts == 1
+    assert after[0] - before[-1] == pytest.approx(2.0, abs=2e-3)
+    np.testing.assert_allclose(np.diff(after), 1 / RATE, rtol=0, atol=1e-7)
+
+
+def test_rate_is_inferred_from_arrivals_when_not_configured(rng):
+    stamper = ArrivalStamper(0.0)
+    placed = [stamper.stamps("excitation", t, 1) for t in receive_times(1500, rng)]
+    assert stamper.rate == RATE
+    assert placed[0] is None and placed[-1] is not None
