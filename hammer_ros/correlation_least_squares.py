@@ -85,10 +85,10 @@ def _check_record(v: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return v, y
 
 
-def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int):
+def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int, intercept: bool = False):
     """Solve the ARX (mu = 1) or mu-Markov regression (eqs. 1, 3) of y on v (1-D or a basis
     matrix): returns (regression, a or alpha, input coefficients as lags x channels)."""
-    reg, theta = fit_regression(y, v, order, delay, mu)
+    reg, theta = fit_regression(y, v, order, delay, mu, intercept)
     a, coefficients = reg.split(theta)
     return reg, a, coefficients
 
@@ -153,14 +153,18 @@ def gain_correction(
     by least squares on the raw record, with (A_hat, B_hat) the step-1 ARX polynomials or the
     ARMARKOV polynomials of eq. (4) (alpha_j, h_i, beta_i) for mu-Markov. The regressors are
     the shared builder's columns (the basis v, ..., v^p at the model's input lags) filtered
-    by B_hat, the target is y filtered by A_hat."""
+    by B_hat, the target is y filtered by A_hat.
+
+    Offsets (an extension of the paper, which assumes a zero-mean input): a constant gamma_0
+    is estimated with gamma_1..gamma_p, so a command with a non-zero mean or a sensor offset
+    does not bias F; the returned array is gamma_0..gamma_p."""
     try:
-        reg = build_regression(y, polynomial_basis(v, poly), order, delay, step1.mu)
+        reg = build_regression(y, polynomial_basis(v, poly, constant=True), order, delay, step1.mu)
     except ValueError as exc:
         raise IdentificationError(f"CLS step 2: {exc}") from None
     n = reg.output_lags.size
     target = reg.target - reg.phi[:, :n] @ step1.denominator
-    inputs = reg.phi[:, n:].reshape(reg.rows.size, reg.input_lags.size, poly)
+    inputs = reg.phi[:, n:].reshape(reg.rows.size, reg.input_lags.size, poly + 1)
     regressors = np.einsum("rlp,l->rp", inputs, step1.numerator)
     return solve_least_squares(regressors, target)
 
@@ -190,18 +194,27 @@ def correlation_least_squares_steps(
         phi_yv(k) = -sum_j a_j phi_yv(k-j) + sum_i b_i phi_vv(k-i)        (and eq. 3 likewise),
 
     over k = tau = -tau_max .. tau_max identifies h_hat = C_F h without knowing F.
-    Step 2 (``gain_correction``): gamma_1..gamma_p with the step-1 (A_hat, B_hat); then
-    B = gamma_1 B_hat and F = v + (gamma_2/gamma_1) v^2 + ... (unit slope, as the paper
-    assumes F monic).
+    Step 2 (``gain_correction``): gamma_0..gamma_p with the step-1 (A_hat, B_hat); then
+    B = s B_hat and F = (gamma_0 + gamma_1 v + ... + gamma_p v^p) / s with s = F'(mean v),
+    i.e. F has unit slope at the operating point (for the paper's zero-mean input this is its
+    monic F, gamma_1 = 1).
+
+    Offsets (an extension; the paper assumes zero-mean signals): step 1 carries an intercept,
+    which makes (a, b) invariant to constant offsets of both correlation functions. A Gaussian
+    input N(m, s^2) gives raw correlations phi_vv + m^2 and phi_yv + m E{y}, so the intercept
+    reproduces the centred-signal estimate (Bussgang/Nuttall holds for v - m) while the
+    estimator stays the paper's eq. (8) - which the streaming engine updates recursively.
     """
     v, y = _check_record(v, y)
     phi_vv, phi_yv = _check_record(phi_vv, phi_yv)
-    _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu)
+    _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu, intercept=True)
     step1 = linear_estimate(a, coefficients[:, 0], order, delay, mu)
     gamma = gain_correction(v, y, step1, order, delay, poly)
-    if abs(gamma[0]) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
-        raise IdentificationError("CLS step 2: gamma_1 = 0, the input does not excite the linear term of F")
-    return HammersteinEstimate(step1.scaled(gamma[0]), PolynomialMap(np.concatenate([[0.0], gamma / gamma[0]])))
+    slope = float(np.polynomial.polynomial.polyval(np.mean(v), np.polynomial.polynomial.polyder(gamma)))
+    if abs(slope) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
+        raise IdentificationError("CLS step 2: F has zero slope at the input mean; the linear block's gain is "
+                                  "not identifiable")
+    return HammersteinEstimate(step1.scaled(slope), PolynomialMap(gamma / slope))
 
 
 # --- Bai's two-stage nonlinear least squares (sec. 3.2) --------------------------------------

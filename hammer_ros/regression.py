@@ -97,9 +97,12 @@ def solve_least_squares(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def fit_regression(
-    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, intercept: bool = False
 ) -> tuple[Regression, np.ndarray]:
     """Build the ARX / mu-Markov regression of y on v and solve it by least squares.
+
+    With ``intercept`` a constant column is added and its coefficient dropped from the
+    returned theta: the estimate of (a, b) is then invariant to constant offsets of y and v.
 
     Raises IdentificationError (naming order, delay, mu) when the record - or the number of
     correlation lags, when y and v are correlation functions - is too short for the model.
@@ -108,12 +111,14 @@ def fit_regression(
         reg = build_regression(y, v, order, delay, mu)
     except ValueError as exc:
         raise IdentificationError(f"--order/--delay/--mu: {exc}") from None
-    if reg.rows.size < reg.phi.shape[1]:
+    phi = np.hstack([reg.phi, np.ones((reg.rows.size, 1))]) if intercept else reg.phi
+    if reg.rows.size < phi.shape[1]:
         raise IdentificationError(
-            f"{reg.rows.size} regression rows for {reg.phi.shape[1]} parameters "
+            f"{reg.rows.size} regression rows for {phi.shape[1]} parameters "
             f"(order {order}, delay {delay}, mu {mu}): record or --tau-max too short"
         )
-    return reg, solve_least_squares(reg.phi, reg.target)
+    theta = solve_least_squares(phi, reg.target)
+    return reg, theta[: reg.phi.shape[1]]
 
 
 def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.ndarray:

@@ -108,14 +108,17 @@ def test_gain_column_is_h1_ratio(monte_carlo, table, gain, tolerance, method):
 
 def test_gain_correction_recovers_gamma_with_the_true_linear_block(g1, rng):
     """CLS step 2 alone: with B_hat = 2.5 B (what step 1 returns when C_F = 2.5), gamma is
-    F1's coefficients divided by 2.5, for the ARX and the ARMARKOV polynomials."""
+    F1's coefficients divided by 2.5 (gamma_0 = 0: no offset), for the ARX and the ARMARKOV
+    polynomials; an output offset of G1(1) * 0.3 shows up as gamma_0 = 0.3 / 2.5."""
     v = rng.standard_normal(800) / (2 * np.pi)
     y = g1.simulate(v + 4 * v**3)
     arx = linear_estimate(g1.a[1:], 2.5 * g1.b[1:], order=3, delay=1, mu=1)
-    np.testing.assert_allclose(gain_correction(v, y, arx, 3, 1, poly=3), [0.4, 0.0, 1.6], atol=1e-10)
+    np.testing.assert_allclose(gain_correction(v, y, arx, 3, 1, poly=3), [0.0, 0.4, 0.0, 1.6], atol=1e-10)
+    shifted = g1.simulate(0.3 + v + 4 * v**3)
+    np.testing.assert_allclose(gain_correction(v, shifted, arx, 3, 1, poly=3), [0.12, 0.4, 0.0, 1.6], atol=1e-10)
     markov = standard_least_squares(v, g1.simulate(v), order=3, delay=1, mu=30).scaled(2.5)  # exact ARMARKOV
     np.testing.assert_allclose(markov.markov[1:6], 2.5 * g1.markov_parameters(6)[1:], atol=1e-9)
-    np.testing.assert_allclose(gain_correction(v, y, markov, 3, 1, poly=3), [0.4, 0.0, 1.6], atol=1e-8)
+    np.testing.assert_allclose(gain_correction(v, y, markov, 3, 1, poly=3), [0.0, 0.4, 0.0, 1.6], atol=1e-8)
 
 
 def test_result_simulates_the_whole_hammerstein_model(g1, rng):
@@ -153,7 +156,7 @@ def test_impossible_settings_raise_identification_error(g1, rng):
         correlation_least_squares(v, y, 3, 1, mu=30, tau_max=20)
     with pytest.raises(IdentificationError, match="V_11"):
         identify("nls-arx", np.zeros(300), y, IdentifyOptions())
-    with pytest.raises(IdentificationError, match="gamma_1 = 0"):
+    with pytest.raises(IdentificationError, match="zero slope"):
         identify("cls-arx", np.zeros(300), y, IdentifyOptions())
     with pytest.raises(IdentificationError, match="rank"):
         identify("cls-markov", np.zeros(300), y, IdentifyOptions(mu=10))
@@ -241,3 +244,22 @@ def test_cli_impossible_options_exit_2_with_one_line(g1_f2_files, extra, reason,
     assert cli_main(["identify", str(csv_path), *extra, "--json"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and reason in err[0] and "Traceback" not in err[0]
+
+
+@pytest.mark.parametrize("method", ["cls-arx", "cls-markov"])
+def test_cls_handles_a_command_with_an_offset(method, g1):
+    """Non-zero-mean Gaussian command (an actuator working around an operating point): the
+    step-1 intercept keeps the poles and zeros as accurate as for the zero-mean input, and F is
+    reported in the user's units with unit slope at the operating point."""
+    errors = []
+    for seed in range(10):
+        v = 1.0 + np.random.default_rng(seed).standard_normal(5001) / (2 * np.pi)
+        y = g1.simulate(np.tanh(8 * (v - 1.0)) / 8 + 0.05)
+        result = identify(method, v, y, IdentifyOptions(order=3, delay=1))
+        errors.append((root_rss_error(g1.poles, result.poles), root_rss_error(g1.zeros, result.zeros)))
+        slope = np.polynomial.polynomial.polyval(v.mean(), np.polynomial.polynomial.polyder(
+            result.nonlinearity.coefficients))
+        assert slope == pytest.approx(1.0)
+    poles, zeros = np.median(errors, axis=0)
+    limit = 0.02 if method == "cls-markov" else 0.05
+    assert poles < limit and zeros < 2 * limit
