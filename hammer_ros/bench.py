@@ -99,8 +99,8 @@ QUICK = Plan(
 FULL = Plan(
     name="full", repeats=5, ingest_samples=1_000_000, ingest_taus=(50, 200), ingest_windows=(10_000, 100_000),
     ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
-    node_rates={1: (1000.0, 2000.0, 5000.0, 10000.0, 20000.0, 40000.0),
-                100: (200.0, 500.0, 1000.0, 2000.0, 5000.0, 10000.0)},
+    node_rates={1: (1000.0, 2000.0, 5000.0, 7000.0, 10000.0, 14000.0, 20000.0),
+                100: (500.0, 1000.0, 2000.0, 5000.0, 7000.0, 10000.0, 14000.0)},
     node_seconds=3.0, replay_messages={1: 100_000, 100: 10_000}, replay_repeats=3, solve_windows=(1000, 4000, 16000),
     solve_repeats=200, slow_solve_repeats=15, peer_frols=((3, 3, 15), (3, 4, 20), (3, 5, 30)),
     memory_windows=(10_000, 100_000, 1_000_000),
@@ -695,40 +695,56 @@ def memory_section(windows: Sequence[int]) -> Section:
 
 
 # ------------------------------------------------------------------------------------ goals
+def _measured(sections: dict[str, Section], key: str) -> list[dict]:
+    """The rows of a section that hold a measurement (not a failure)."""
+    section = sections.get(key)
+    return [] if section is None else [r for r in section.rows if "error" not in r]
+
+
+def _all_some_none(flags: Sequence[bool]) -> bool | str:
+    return True if all(flags) else ("partly" if any(flags) else False)
+
+
 def goals(sections: dict[str, Section]) -> Section:
-    """The issue's goals, each with the figure that decides it."""
+    """The issue's goals, each with the figures that decide it ("partly": met in some cases)."""
     table = Section("goals", "Goals", [("goal", "goal"), ("measured", "measured"), ("met", "met")])
 
-    def add(goal: str, measured: str, met: bool | None) -> None:
+    def add(goal: str, measured: str, met: bool | str | None) -> None:
         table.rows.append({"goal": goal, "measured": measured, "met": met})
 
-    rows = sections.get("ingest", Section("", "", [])).rows
+    rows = _measured(sections, "ingest")
     if rows:
-        worst = min(rows, key=lambda r: r["ratio"])
-        add("engine ingest >= 0.5 x batch FFT", f"{min(r['ratio'] for r in rows):.2f} .. "
-            f"{max(r['ratio'] for r in rows):.2f} (worst: {worst['case']})", all(r["goal"] for r in rows))
-    rows = [r for r in sections.get("node", Section("", "", [])).rows if r.get("ratio") is not None]
+        add("engine ingest >= 0.5 x batch FFT", "; ".join(f"{r['case']}: {r['ratio']:.2f}" for r in rows),
+            _all_some_none([r["goal"] for r in rows]))
+    rows = [r for r in _measured(sections, "node") if r.get("ratio") is not None]
     if rows:
         add("node zero loss up to >= 0.9 x bare rclpy", "; ".join(f"{r['case']}: {r['ratio']:.2f}" for r in rows),
-            all(r["goal"] for r in rows))
-    rows = sections.get("replay", Section("", "", [])).rows
+            _all_some_none([r["goal"] for r in rows]))
+    rows = _measured(sections, "replay")
     if rows:
-        add("replay >= 0.8 x bare decode", "; ".join(f"{r['case'].split(',')[0]}: {r['ratio']:.2f}" for r in rows),
-            all(r["goal"] for r in rows))
-    rows = [r for r in sections.get("solve", Section("", "", [])).rows
+        add("replay >= 0.8 x bare decode",
+            "; ".join(f"{r['case'].split(',')[0]}, {r['mode'].split(' (')[0]}: {r['ratio']:.2f}" for r in rows),
+            _all_some_none([r["goal"] for r in rows]))
+    rows = [r for r in _measured(sections, "solve")
             if r.get("method") == "cls-markov" and r.get("mu") == DEFAULT_MU and "p99" in r]
     if rows:
         add("CLS mu-Markov solve p99 < 5 ms at mu = 30",
             "; ".join(f"W {r['window']}, tau_max {r['tau_max']}: {r['p99']:.2f} ms" for r in rows),
-            all(r["p99"] < 5.0 for r in rows))
-    rows = [r for r in sections.get("peers", Section("", "", [])).rows
-            if r.get("method") == "cls-markov" and "speedup" in r and r["case"].startswith("G1")]
+            _all_some_none([r["p99"] < 5.0 for r in rows]))
+    peers = _measured(sections, "peers")
+    rows = [r for r in peers if r.get("method") == "cls-markov" and "speedup" in r and r["case"].startswith("G1")]
     if rows:
         r = rows[0]
-        best = min(p["nrmse"] for p in sections["peers"].rows if p["method"] == "FROLS" and p["case"] == r["case"])
+        best = min(p["nrmse"] for p in peers if p["method"] == "FROLS" and p["case"] == r["case"])
         add(">= 20 x faster than FROLS with a better validation NRMSE (G1, CLS mu-Markov)",
             f"{r['speedup']:.0f} x faster, NRMSE {r['nrmse']:.3f} vs best FROLS {best:.3f}",
             r["speedup"] >= 20 and r["better"])
+    elif peers:
+        add(">= 20 x faster than FROLS with a better validation NRMSE (G1, CLS mu-Markov)",
+            "not measured: SysIdentPy is not installed (make bench-deps)", None)
+    for key, section in sections.items():
+        if not _measured(sections, key) and section.rows:
+            add(f"section {key}", f"not measured: {section.rows[0].get('error')}", False)
     return table
 
 
@@ -758,6 +774,7 @@ def run_sections(plan: Plan, only: Sequence[str] = SECTION_KEYS, profile: bool =
                 profiler.enable()
             elapsed, section = _timed(builders[key])
         except Exception as exc:  # one broken section must not hide the others
+            print(f"bench: {key} failed: {exc!r}", file=log, flush=True)
             section, elapsed = Section(key, f"{key}: failed", [("error", "error")], [{"error": repr(exc)}]), 0.0
         finally:
             if profiler:

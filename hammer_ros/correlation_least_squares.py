@@ -31,12 +31,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import signal
 
 from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .errors import IdentificationError
 from .linear import LinearModel
-from .regression import build_regression, fit_regression, polynomial_basis, solve_least_squares
+from .regression import fit_regression, markov_lags, polynomial_basis, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PolynomialMap
@@ -151,21 +152,28 @@ def gain_correction(
         A_hat(q^-1) y(k) = B_hat(q^-1) [gamma_1 v(k) + ... + gamma_p v^p(k)] + e(k),
 
     by least squares on the raw record, with (A_hat, B_hat) the step-1 ARX polynomials or the
-    ARMARKOV polynomials of eq. (4) (alpha_j, h_i, beta_i) for mu-Markov. The regressors are
-    the shared builder's columns (the basis v, ..., v^p at the model's input lags) filtered
-    by B_hat, the target is y filtered by A_hat.
+    ARMARKOV polynomials of eq. (4) (alpha_j, h_i, beta_i) for mu-Markov, at the lags of
+    ``regression.markov_lags``. The regressors are the basis v^0, v, ..., v^p filtered by the
+    FIR B_hat, the target is y filtered by A_hat (rows from the largest lag on, as the shared
+    regression builder would give them, without forming its W x (n + (p+1)(mu+n)) matrix).
 
     Offsets (an extension of the paper, which assumes a zero-mean input): a constant gamma_0
     is estimated with gamma_1..gamma_p, so a command with a non-zero mean or a sensor offset
     does not bias F; the returned array is gamma_0..gamma_p."""
     try:
-        reg = build_regression(y, polynomial_basis(v, poly, constant=True), order, delay, step1.mu)
+        output_lags, input_lags = markov_lags(order, delay, step1.mu)
     except ValueError as exc:
         raise IdentificationError(f"CLS step 2: {exc}") from None
-    n = reg.output_lags.size
-    target = reg.target - reg.phi[:, :n] @ step1.denominator
-    inputs = reg.phi[:, n:].reshape(reg.rows.size, reg.input_lags.size, poly + 1)
-    regressors = np.einsum("rlp,l->rp", inputs, step1.numerator)
+    first = int(max(output_lags.max(), input_lags.max()))
+    if v.size <= first + poly:
+        raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
+    denominator = np.zeros(first + 1)
+    denominator[0] = 1.0
+    denominator[output_lags] = step1.denominator
+    numerator = np.zeros(first + 1)
+    numerator[input_lags] = step1.numerator
+    target = signal.lfilter(denominator, [1.0], y)[first:]
+    regressors = signal.lfilter(numerator, [1.0], polynomial_basis(v, poly, constant=True), axis=0)[first:]
     return solve_least_squares(regressors, target)
 
 

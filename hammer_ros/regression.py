@@ -124,5 +124,6 @@ def fit_regression(
 def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.ndarray:
     """Columns v, v^2, ..., v^degree (f_l = v^l, paper 000 Remark 3), with a leading column of
     ones when ``constant``."""
-    powers = np.arange(0 if constant else 1, degree + 1)
-    return np.asarray(v, dtype=float)[:, None] ** powers[None, :]
+    v = np.asarray(v, dtype=float)
+    powers = np.cumprod(np.broadcast_to(v[:, None], (v.size, degree)), axis=1)  # v, v^2, ... by products
+    return np.hstack([np.ones((v.size, 1)), powers]) if constant else powers

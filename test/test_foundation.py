@@ -18,7 +18,8 @@ from hammer_ros.linear import root_rss_error
 from hammer_ros.regression import build_regression, solve_least_squares
 
 REPO = Path(__file__).resolve().parents[1]
-ROS_EDGE_MODULES = {"node", "plant_node", "demo", "replay", "bag_io", "ros_fields", "ros_messages", "bench", "ros_rate_probe"}
+ROS_EDGE_MODULES = {"node", "plant_node", "demo", "replay", "bag_io", "ros_fields", "ros_messages", "bench",
+                    "ros_rate_probe"}
 
 
 def test_g1_matches_paper(g1):
