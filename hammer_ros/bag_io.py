@@ -2,7 +2,10 @@
 
 Reading uses ``mcap`` + ``mcap_ros2`` (CDR decoding from the ``ros2msg`` schemas stored in the
 bag, so no ROS installation is needed). Only the topics asked for are decoded; other topics and
-unknown schemas are skipped. A sample's stamp is the message's ``header.stamp`` when it has a
+unknown schemas are skipped. Files are read sequentially and fault-tolerantly (``_RecordScan``):
+a truncated or corrupt recording gives every valid message, with a warning saying where it
+broke; oversized or undecodable messages are skipped and counted (``BagReadStats``).
+A sample's stamp is the message's ``header.stamp`` when it has a
 header (an all-zero stamp counts as unset), else the bag's log time; a message with n samples
 (``data[:]``, a numeric array field) follows the batch convention of ``field_path``.
 
@@ -13,7 +16,9 @@ Writing (``ResultWriter``) uses the ``mcap_ros2`` writer with the ``.msg`` defin
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import io
 import re
 import struct
 import sys
@@ -37,7 +42,7 @@ PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "in
 # msg_config keys that are not engine settings
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
               "response_field")
-OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time")
+OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap")
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
 
 
@@ -77,9 +82,9 @@ def load_msg_config(path: str | Path) -> dict[str, Any]:
         raise UsageError(f"{path}: not a text (UTF-8) file") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
-        where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
         problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise UsageError(f"{path}{where}: not valid YAML ({problem})") from None
+        raise UsageError(f"{path}: not valid YAML{where} ({problem})") from None
     if isinstance(doc, dict):
         for section in doc.values():
             if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
@@ -103,7 +108,8 @@ def engine_config_from_params(params: dict[str, Any], source: str = "config",
             value = None
         elif key == "partition":
             if value is not None and not isinstance(value, (list, tuple)):
-                raise UsageError(f"{source}: partition: must be a list of breakpoints, e.g. [-0.5, 0.5] (got {value!r})")
+                raise UsageError(f"{source}: partition: must be a list of breakpoints, e.g. [-0.5, 0.5] "
+                                 f"(got {value!r})")
             value = tuple(value) if value else None
         changes[key] = value
     try:
@@ -141,10 +147,15 @@ _warned: set[str] = set()
 
 
 def warn(text: str) -> None:
-    """One ``hammer-ros: warning:`` line on stderr (each distinct text once per process)."""
+    """One ``hammer-ros: warning:`` line on stderr (each distinct text once per command:
+    ``forget_warnings`` starts a command)."""
     if text not in _warned:
         _warned.add(text)
         print(f"hammer-ros: warning: {text}", file=sys.stderr)
+
+
+def forget_warnings() -> None:
+    _warned.clear()
 
 
 @dataclass
@@ -397,7 +408,8 @@ class _Decoders:
         if schema is None:
             raise UsageError(f"{where}: no schema stored for it, cannot decode")
         try:
-            decoder = self._factory.decoder_for(channel.message_encoding, schema)
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)
         except Exception as exc:  # the schema text comes from the file: any parse failure
             raise UsageError(f"{where}: cannot parse its schema {schema.name!r} ({_reason(exc)})") from None
         if decoder is None:
@@ -405,6 +417,11 @@ class _Decoders:
                              "are not ROS 2 CDR/ros2msg, cannot decode")
         self._decoders[channel.id] = decoder
         return decoder
+
+
+RECENT_BYTES = 1 << 20  # messages this big are kept decoded (at most RECENT_COUNT): check_fields, then the read
+RECENT_COUNT = 2
+_recently_decoded: dict[tuple, Any] = {}
 
 
 def iter_bag_messages(path: str | Path, topics: list[str],
@@ -439,13 +456,18 @@ def iter_bag_messages(path: str | Path, topics: list[str],
                     stats.oversized += 1
                     stats.note("oversized", f"{channel.topic}: {len(record.data):,} bytes")
                     continue
-                decoder = decoders.get(channel)
+                key = (str(file), channel.id, record.sequence, log_time)
+                decoded = _recently_decoded.get(key)
                 try:
-                    decoded = decoder(record.data)
+                    decoded = decoders.get(channel)(record.data) if decoded is None else decoded
                 except Exception as exc:  # corrupt CDR bytes fail in many ways
                     stats.undecodable += 1
                     stats.note("undecodable", f"{channel.topic}: {_reason(exc)}")
                     continue
+                if len(record.data) > RECENT_BYTES and key not in _recently_decoded:
+                    while len(_recently_decoded) >= RECENT_COUNT:
+                        _recently_decoded.pop(next(iter(_recently_decoded)))
+                    _recently_decoded[key] = decoded
                 yield log_time, channel.topic, decoded
         stats.damage.extend(f"{file}: {d}" for d in scan.damage if f"{file}: {d}" not in stats.damage)
 
@@ -521,6 +543,7 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
     gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
     (a longer bag is a UsageError pointing to ``replay``, which keeps only a window)."""
+    forget_warnings()
     params = load_msg_config(config) if config else {}
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
@@ -613,16 +636,16 @@ class ResultWriter:
     """An MCAP file of ROS 2 messages given as dicts (``outputs`` form); use as a context manager
     (the file is finished and closed on exit, also after an error)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, option: str = "--out") -> None:
         from mcap_ros2.writer import Writer
 
         self.path = Path(path)
         if self.path.suffix.lower() != ".mcap":
-            raise UsageError(f"--out: {self.path}: the file name must end in .mcap")
+            raise UsageError(f"{option}: {self.path}: the file name must end in .mcap")
         try:
             self._file = open(self.path, "wb")
         except OSError as exc:
-            raise UsageError(f"--out: {self.path}: {exc.strerror}") from None
+            raise UsageError(f"{option}: {self.path}: {exc.strerror}") from None
         self._writer = Writer(self._file)
         self._schemas: dict[str, Any] = {}
         self.count = 0

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import HammerRosError, UsageError
+from .errors import HammerRosError, IdentificationError, UsageError
 from .methods import METHODS, IdentifyOptions
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric")
@@ -76,7 +76,29 @@ def add_identify_options(p: argparse.ArgumentParser, default_method: str = "cls-
     p.add_argument("--harmonic", default=None, help="semiparametric: the single-harmonic record DATA2")
 
 
+# option -> the methods that use it (given with any other method it would be silently ignored)
+OPTION_METHODS = {
+    "--mu": ("cls-markov", "nls-markov", "ls-markov"),
+    "--partition": ("plls-hammerstein", "plls-feedback", "plls-hammerstein-feedback"),
+    "--feedback-partition": ("plls-hammerstein-feedback",),
+    "--harmonic": ("semiparametric",),
+    "--tau-max": ("cls-arx", "cls-markov", "bf-hammerstein", "bf-feedforward"),
+}
+
+
+def check_option_conflicts(method: str, args: argparse.Namespace, streaming: bool = False) -> None:
+    """A UsageError for an option given with a method that does not use it (contradictory
+    options). ``streaming``: the engine always uses --tau-max for its correlation sums."""
+    for option, methods in OPTION_METHODS.items():
+        if getattr(args, option[2:].replace("-", "_"), None) is None or method in methods:
+            continue
+        if option == "--tau-max" and streaming:
+            continue
+        raise UsageError(f"{option}: not used by --method {method} (only by {', '.join(methods)})")
+
+
 def options_from_args(args: argparse.Namespace) -> IdentifyOptions:
+    check_option_conflicts(args.method, args)
     if args.order < 1:
         raise UsageError(f"--order: must be >= 1 (got {args.order})")
     if args.delay > args.order:
@@ -111,6 +133,8 @@ def load_data(path: str, args: argparse.Namespace):
         from .bag_io import load_bag_record
 
         return load_bag_record(path, input_spec=args.input, output_spec=args.output, config=args.config)
+    if getattr(args, "config", None):
+        raise UsageError(f"--config: a msg_config maps bag topics, but {path} is a CSV/NPZ file (use --input/--output)")
     return load_record(path, args.input or "u", args.output or "y")
 
 
@@ -125,9 +149,12 @@ def emit(doc: dict, as_json: bool, text: str | None = None) -> None:
 def cmd_identify(args: argparse.Namespace) -> int:
     from .methods import identify
 
-    record = load_data(args.data, args)
     options = options_from_args(args)
-    result = identify(args.method, record.v, record.y, options)
+    record = load_data(args.data, args)
+    try:
+        result = identify(args.method, record.v, record.y, options)
+    except IdentificationError as exc:  # name the data the method could not identify from
+        raise IdentificationError(f"{args.data}: {exc}") from None
     doc = result.to_json(record.v, record.y)
     emit(doc, args.json, format_model(doc))
     return 0
@@ -238,11 +265,17 @@ def main(argv: list[str] | None = None) -> int:
     except HammerRosError as exc:
         print(f"hammer-ros: error: {exc}", file=sys.stderr)
         return 2
+    except np.linalg.LinAlgError as exc:  # a method's linear algebra failed on the user's data
+        print(f"hammer-ros: error: {argv[0]}: numerical failure on this data ({exc})", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # stdout closed early (e.g. piped into head): not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:  # unreadable/unwritable file, disk full, ... (after BrokenPipeError, its subclass)
+        print(f"hammer-ros: error: {exc.filename or argv[0]}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import UsageError
 from .linear import root_rss_error
 from .ros_env import DomainLease, child_environment
 
@@ -192,6 +193,8 @@ def _summary(watcher: _Watcher) -> tuple[str, bool]:
 def run(args: argparse.Namespace) -> int:
     """Plant + node on a private graph for ``args.duration`` seconds; 0 when a model arrived."""
     duration = float(args.duration)
+    if not (np.isfinite(duration) and duration > 0):
+        raise UsageError(f"--duration: must be > 0 seconds (got {args.duration})")
     with DomainLease() as lease, tempfile.TemporaryDirectory(prefix="hammer_ros_demo_") as tmp:
         logs = Path(tmp)
         env = child_environment(lease.domain_id, log_dir=logs / "ros_log")

@@ -4,7 +4,10 @@ A thin adapter over ``streaming.StreamingEngine``: two subscriptions (sensor-dat
 excitation and response samples into the engine, a worker thread solves on a snapshot of the
 window ``solve_rate`` times a second and publishes the results built by ``outputs``. Ingestion
 never waits for a solve (a slow solve skips solves, never samples); parameters are validated and
-applied live; a bad message is counted and reported in /diagnostics, never fatal.
+applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
+without a new model republishes the last good one marked stale. With ``output_mcap`` every
+published result is also recorded; on SIGINT/SIGTERM the node solves once more, records the
+final model and finishes the file.
 
 Stamps: a message with a non-zero ``header.stamp`` is placed by its stamp (a batch of n samples
 holds samples at stamp - (n-1)/fs .. stamp); any other message is placed by counting samples at
@@ -35,6 +38,7 @@ from rcl_interfaces.msg import (  # noqa: E402
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.event_handler import SubscriptionEventCallbacks  # noqa: E402
 from rclpy.exceptions import ParameterException, ParameterUninitializedException  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
@@ -45,13 +49,28 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from rclpy.utilities import remove_ros_args  # noqa: E402
 from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
 
+from .bag_io import ResultWriter, node_topic  # noqa: E402
 from .errors import UsageError  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .methods import METHODS  # noqa: E402
-from .outputs import OUTPUT_TOPICS, diagnostics_message, result_messages, to_ros_message  # noqa: E402
+from .outputs import (  # noqa: E402
+    OUTPUT_TOPICS,
+    diagnostics_message,
+    model_json,
+    result_messages,
+    stale_model_message,
+    to_ros_message,
+)
 from .outputs import _message_class as output_message_class  # noqa: E402
 from .sample_clock import ArrivalStamper  # noqa: E402
-from .streaming import EngineConfig, SolveOutcome, StreamingEngine, solve_snapshot  # noqa: E402
+from .streaming import (  # noqa: E402
+    MAX_TAU_MAX,
+    MAX_WINDOW,
+    EngineConfig,
+    SolveOutcome,
+    StreamingEngine,
+    solve_snapshot,
+)
 
 NODE_NAME = "hammer_ros"
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
@@ -83,21 +102,28 @@ PARAMETERS: dict[str, Spec] = {
     "response_type": Spec("std_msgs/msg/Float64", "str", "message type of response_topic"),
     "response_field": Spec("data", "str", "field path of y"),
     "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e6),
-    "window": Spec(4000, "int", "W: samples in the sliding window", 16, 10_000_000),
+    "window": Spec(4000, "int", "W: samples in the sliding window", 16, MAX_WINDOW),
     "forgetting": Spec(1.0, "float", "1 = exact sliding window; < 1 = exponential forgetting factor", 0.0, 1.0),
     "method": Spec("cls-markov", "str", "identification method", choices=STREAMING_METHODS),
     "order": Spec(3, "int", "order n of the linear block", 1, 50),
     "delay": Spec(1, "int", "relative degree d (0..order)", 0, 50),
     "mu": Spec(0, "int", "Markov parameters of mu-Markov methods; 0 = method default", 0, 10_000),
-    "tau_max": Spec(60, "int", "largest correlation lag (CLS)", 1, 100_000),
+    "tau_max": Spec(60, "int", "largest correlation lag (CLS)", 1, MAX_TAU_MAX),
     "poly": Spec(3, "int", "polynomial order p of the nonlinearity", 1, 50),
     "partition": Spec(None, "floats", "PLLS breakpoints c1 < c2 < ...; empty = method default"),
     "interpolation": Spec("zoh", "str", "resampling onto the grid", choices=("zoh", "linear")),
     "max_gap": Spec(0.0, "float", "seconds without samples that restart the window; 0 = 5 sample periods", 0.0, 1e6),
     "min_fill": Spec(0.25, "float", "fraction of the window needed before the first solve", 0.0, 1.0),
+    "min_excitation": Spec(0.1, "float", "input std needed, relative to the windows behind the published "
+                           "models (below: 'not persistently exciting', the last model stays, marked stale); 0 = off",
+                           0.0, 1.0),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
     "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
+    "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
+                        "does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000, read_only=True),
+    "output_mcap": Spec("", "str", "record every published result in this MCAP file, finished on shutdown "
+                        "(SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
 }
 ENGINE_FIELDS = {f.name for f in fields(EngineConfig)} & set(PARAMETERS)
 STREAM_PARAMETERS = {f"{s}_{k}": s for s in STREAMS for k in ("topic", "type", "field")}
@@ -147,6 +173,8 @@ def _coerce(name: str, value: Any) -> Any:
             raise UsageError(f"{name}: {value!r} is not one of {', '.join(spec.choices)}")
         return value
     if spec.kind == "floats":
+        if type(value).__name__ == "array":  # rclpy hands DOUBLE_ARRAY values over as array.array('d')
+            value = list(value)
         if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
             return None
         if not isinstance(value, (list, tuple)) or not all(isinstance(x, (int, float)) for x in value):
@@ -193,6 +221,9 @@ class _Input:
         self.path: FieldPath | None = None
         self.field_errors = 0
         self.last_error = ""
+        self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
+        self.dds_lost = 0  # messages the middleware reports lost before the callback (message-lost event)
+        self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
 
 
 class IdentificationNode(Node):
@@ -212,6 +243,7 @@ class IdentificationNode(Node):
         self._lock = threading.Lock()  # guards the engine and the stamper
         self._pending_lock = threading.Lock()  # guards the queues filled by the callbacks
         self._pending: dict[str, list] = {s: [] for s in STREAMS}
+        self._pending_samples = 0
         self.engine = StreamingEngine(engine_config(self.values))
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
@@ -230,6 +262,9 @@ class IdentificationNode(Node):
 
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
+        self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
+        self._writer_lock = threading.Lock()
+        self._writer = ResultWriter(self.values["output_mcap"], "output_mcap") if self.values["output_mcap"] else None
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._workers = [threading.Thread(target=self._ingest_loop, name="hammer_ros_ingest", daemon=True),
@@ -256,8 +291,12 @@ class IdentificationNode(Node):
         source.path = parse_field_path(self.values[f"{stream}_field"])
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
+        def on_lost(info, source=source) -> None:
+            source.dds_lost = info.total_count
+
         source.subscription = self.create_subscription(
-            cls, self.values[f"{stream}_topic"], lambda msg, s=stream: self._on_message(s, msg), qos)
+            cls, self.values[f"{stream}_topic"], lambda msg, s=stream: self._on_message(s, msg), qos,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost))
 
     def _on_message(self, stream: str, msg) -> None:
         """Subscription callback: extract the samples and queue them (no engine work here)."""
@@ -265,25 +304,31 @@ class IdentificationNode(Node):
         source = self.inputs[stream]
         try:
             values = extract_samples(msg, source.path)
-        except FieldError as exc:
+        except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
             source.field_errors += 1
-            source.last_error = str(exc)
+            source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
             self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
             return
         item = (receive, message_stamp(msg) or 0.0, values)  # stamp 0 = none or unset: place by counting
         with self._pending_lock:
+            if self._pending_samples + values.size > self.values["max_pending"]:  # bounded: a flood is dropped
+                source.queue_dropped += 1
+                return
             self._pending[stream].append(item)
+            self._pending_samples += values.size
 
     def _flush(self) -> None:
-        """Move the queued samples into the engine, one vectorised add per stream."""
+        """Move the queued samples into the engine: one vectorised add of both streams,
+        interleaved in time (``StreamingEngine.add_streams``)."""
         with self._lock:
             with self._pending_lock:
                 pending, self._pending = self._pending, {s: [] for s in STREAMS}
-            for stream, items in pending.items():
-                if items:
-                    self._ingest(stream, items)
+                self._pending_samples = 0
+            batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
+            self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
 
-    def _ingest(self, stream: str, items: list[tuple[float, float, np.ndarray]]) -> None:
+    def _stamped(self, stream: str, items: list[tuple[float, float, np.ndarray]]) -> tuple | None:
+        """(stamps, values) of one stream's queued messages (None when none could be placed)."""
         stamps, values = [], []
         for receive, stamp, x in items:
             if x.size == 0:
@@ -303,13 +348,22 @@ class IdentificationNode(Node):
                 t = (first,) if x.size == 1 else first + np.arange(x.size) / self.stamper.rate
             stamps.append(t)
             values.append(x)
-        if values:
-            add = self.engine.add_excitation if stream == "excitation" else self.engine.add_response
-            add(np.concatenate(stamps), np.concatenate(values))
+        if not values:
+            return None
+        return np.concatenate([np.atleast_1d(t) for t in stamps]), np.concatenate(values)
 
     def _ingest_loop(self) -> None:
         while not self._stop.wait(FLUSH_PERIOD):
-            self._flush()
+            self._guarded(self._flush, "ingesting")
+
+    def _guarded(self, step, what: str) -> None:
+        """Run one loop step; an unexpected exception is logged and counted, the loop goes on."""
+        try:
+            step()
+        except Exception as exc:  # the node never dies on a bug in one step
+            self.loop_errors += 1
+            self.get_logger().error(f"{what} failed ({type(exc).__name__}: {exc}); continuing",
+                                    throttle_duration_sec=5.0)
 
     # ------------------------------------------------------------------ parameters
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
@@ -378,25 +432,40 @@ class IdentificationNode(Node):
                 deadline = time.monotonic()
             if self._stop.is_set():
                 return
-            self._flush()
-            with self._lock:
-                engine = self.engine
-                snapshot = engine.snapshot()
-            outcome = solve_snapshot(snapshot)
-            with self._lock:
-                if engine is self.engine:
-                    engine.record(outcome)
-                stats = engine.stats.copy()
-            self._publish(outcome, stats)
+            self._guarded(self._solve_once, "solving")
 
-    def _publish(self, outcome: SolveOutcome, stats) -> None:
+    def _solve_once(self, publish: bool = True) -> SolveOutcome:
+        self._flush()
+        if publish:  # (not on shutdown: the graph is gone)
+            self._check_publisher_types()
+        with self._lock:
+            engine = self.engine
+            snapshot = engine.snapshot()
+        outcome = solve_snapshot(snapshot)  # never raises: a failing method gives ok False, status "exception"
+        if outcome.status == "exception":
+            self.get_logger().error(f"solve failed: {outcome.reason}", throttle_duration_sec=5.0)
+        with self._lock:
+            if engine is self.engine:
+                engine.record(outcome)
+            stats = engine.stats.copy()
+        self._publish(outcome, stats, publish)
+        return outcome
+
+    def _publish(self, outcome: SolveOutcome, stats, publish: bool = True) -> None:
+        """Publish (and record in output_mcap, first) the results of a solve; after a solve without
+        a model, the last good model again, marked stale."""
         stamp = self.get_clock().now().nanoseconds * 1e-9
         messages = result_messages(outcome, stamp, self.values["frame_id"])
         if outcome.ok:
             self.last_outcome = outcome
+        elif self.last_outcome is not None:
+            messages.append(stale_model_message(self.last_outcome, outcome))
         diagnostics = diagnostics_message(stats, outcome, stamp, self.get_name())
         self._add_node_diagnostics(diagnostics["status"][0])
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+        self._record(messages, stamp)
+        if not publish:
+            return
         try:
             for topic, type_name, values in messages:
                 publisher, _ = self._outputs[topic]
@@ -405,6 +474,47 @@ class IdentificationNode(Node):
             if not self._stop.is_set():
                 self.get_logger().error(f"publishing failed: {exc}")
 
+    def _record(self, messages: list[tuple[str, str, dict]], stamp: float) -> None:
+        with self._writer_lock:
+            if self._writer is None:
+                return
+            for topic, type_name, values in messages:
+                self._writer.write(node_topic(topic, self.get_name()), type_name, values, round(stamp * 1e9))
+
+    def _check_publisher_types(self) -> None:
+        """Note publishers of another message type on an input topic: DDS never delivers their
+        messages, so without this a wrong type would look like silence."""
+        for stream, source in self.inputs.items():
+            topic = expand_topic_name(self.values[f"{stream}_topic"], self.get_name(), self.get_namespace())
+            wanted = _normal_type(self.values[f"{stream}_type"])
+            others = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)
+                             if _normal_type(info.topic_type) != wanted})
+            expected = self.values[f"{stream}_type"]
+            source.wrong_type = (f"{stream}_topic {topic} has publishers of {', '.join(others)}, expected "
+                                 f"{expected}: their messages cannot be received") if others else ""
+
+    def finish(self) -> SolveOutcome | None:
+        """On shutdown: move the queued samples in, solve once more, record the final results in
+        output_mcap and finish that file; returns the final outcome (None if it failed)."""
+        outcome = None
+        try:
+            outcome = self._solve_once(publish=False)
+        except Exception as exc:  # still close the file
+            print(f"hammer_ros_node: final solve failed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        with self._writer_lock:
+            if self._writer is not None:
+                try:
+                    self._writer.close()
+                    print(f"hammer_ros_node: {self._writer.count} messages in {self._writer.path}", file=sys.stderr)
+                except OSError as exc:  # e.g. the disk is full
+                    print(f"hammer_ros_node: error: output_mcap {self._writer.path}: {exc.strerror or exc}",
+                          file=sys.stderr)
+                self._writer = None
+        if self.last_outcome is not None:
+            stale = None if outcome is not None and outcome.ok else getattr(outcome, "reason", "final solve failed")
+            print(f"hammer_ros_node: final model: {model_json(self.last_outcome, stale)}", file=sys.stderr)
+        return outcome
+
     def _add_node_diagnostics(self, status: dict) -> None:
         values = {
             "excitation_field_errors": self.inputs["excitation"].field_errors,
@@ -412,13 +522,20 @@ class IdentificationNode(Node):
             "unplaced_samples": self.unplaced,
             "clock_restarts": self.stamper.restarts,
             "skipped_solves": self.skipped_solves,
+            "excitation_queue_dropped": self.inputs["excitation"].queue_dropped,
+            "response_queue_dropped": self.inputs["response"].queue_dropped,
+            "excitation_dds_lost": self.inputs["excitation"].dds_lost,
+            "response_dds_lost": self.inputs["response"].dds_lost,
+            "loop_errors": self.loop_errors,
             "window": self.values["window"],
             "method": self.values["method"],
         }
         status["values"].extend({"key": k, "value": str(v)} for k, v in values.items())
         errors = [s.last_error for s in self.inputs.values() if s.field_errors]
+        errors += [s.wrong_type for s in self.inputs.values() if s.wrong_type]
         if errors and status["level"] < 2:
             status["level"] = 1
+        if errors:
             status["message"] = f"{status['message']}; bad messages: {errors[0]}"
 
     def stop(self) -> None:
@@ -427,6 +544,12 @@ class IdentificationNode(Node):
         self._wake.set()
         for worker in self._workers:
             worker.join(timeout=1.0)
+
+
+def _normal_type(name: str) -> str:
+    """'pkg/msg/Name' and 'pkg/Name' compare equal."""
+    parts = name.split("/")
+    return f"{parts[0]}/{parts[-1]}"
 
 
 def usage() -> str:
@@ -459,7 +582,16 @@ def main(argv: list[str] | None = None) -> int:
         executor = EventsExecutor()
         executor.add_node(node)
         while rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                raise
+            except Exception as exc:  # a failing callback must not end the node
+                if not rclpy.ok():
+                    break
+                node.loop_errors += 1
+                node.get_logger().error(f"callback failed ({type(exc).__name__}: {exc}); continuing",
+                                        throttle_duration_sec=5.0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except UsageError as exc:
@@ -468,6 +600,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if node is not None:
             node.stop()
+            node.finish()
             node.destroy_node()
         rclpy.try_shutdown()
     return 0

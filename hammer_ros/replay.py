@@ -5,6 +5,9 @@ batches between solves); ``--rate R`` paces the bag at R x real time and publish
 on the live ROS 2 graph under the node name ``hammer_ros`` (the node's topics, so the same
 dashboard works); ``--out`` writes every result (``outputs``) into an MCAP file.
 
+SIGINT/SIGTERM stop it at the next message: a final solve on what was read, ``--out`` finished
+and closed, the final model printed, exit 128 + signal (``SignalStop``).
+
 Solves happen every 1 / solve_rate seconds of bag time (``--solve-rate``, else the config's
 ``solve_rate``, else 2 Hz) and once at the end of the bag. Settings: command-line options, else
 the ``--config`` parameters, else the engine defaults (tau_max: the method's batch default, so
@@ -26,15 +29,18 @@ from .bag_io import (
     FLUSH_SAMPLES,
     BagReadStats,
     ResultWriter,
+    bag_files,
     bag_message_counts,
     check_fields,
     check_topics,
     engine_config_from_params,
+    forget_warnings,
     iter_bag_samples,
     load_msg_config,
     node_topic,
     stream_specs,
 )
+from .cli import check_option_conflicts, format_model
 from .errors import IdentificationError, UsageError
 from .outputs import diagnostics_message, message_class, result_messages, stale_model_message, to_ros_message
 from .streaming import CLS_STRUCTURES, EngineConfig, SolveOutcome, StreamingEngine
@@ -51,6 +57,7 @@ def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tupl
            "sample_rate": args.sample_rate, "forgetting": args.forgetting, "interpolation": args.interpolation}
     changes = {k: v for k, v in cli.items() if v is not None}
     method = changes.get("method", config.method)
+    check_option_conflicts(method, args, streaming=True)
     if "tau_max" not in changes and "tau_max" not in params and method in CLS_STRUCTURES:
         from .correlation_least_squares import DEFAULT_MU, default_tau_max
 
@@ -64,7 +71,7 @@ def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tupl
     solve_rate = args.solve_rate if args.solve_rate is not None else params.get("solve_rate", DEFAULT_SOLVE_RATE)
     option = "--solve-rate" if args.solve_rate is not None else f"{source}: solve_rate"
     if isinstance(solve_rate, bool) or not isinstance(solve_rate, (int, float)) or not 0 < solve_rate < math.inf:
-        raise UsageError(f"{option}: must be a number > 0 (got {solve_rate!r})")
+        raise UsageError(f"{option}: must be > 0 (got {solve_rate!r})")
     return config, solve_rate
 
 
@@ -154,6 +161,7 @@ class LivePublisher:
 
 
 def run(args: argparse.Namespace) -> int:
+    forget_warnings()
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
     excitation, response = stream_specs(args.input, args.output, params, source)
@@ -162,6 +170,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
     check_topics(args.bag, (excitation, response))
     check_fields(args.bag, (excitation, response))  # every user mistake before any output
+    if args.out and any(Path(args.out).resolve() == f.resolve() for f in bag_files(args.bag)):
+        raise UsageError(f"--out: {args.out} is the bag being replayed (it would be overwritten)")
     counts = bag_message_counts(args.bag)
     total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
     read = BagReadStats()
@@ -248,8 +258,6 @@ def run(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
-        from .cli import format_model
-
         rate = engine.stats.aligned / wall if wall > 0 else float("inf")
         print(format_model(doc))
         print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"

@@ -2,9 +2,12 @@
 
 Pipeline, per batch of timestamped samples of either stream:
 
-1. **Screening.** Non-finite values or stamps are skipped (``nan_skipped``). A stamp equal to
-   the newest accepted stamp of its stream is a ``duplicate``, an older one is ``late``; both are
-   skipped (the grid only moves forward).
+1. **Screening.** Non-finite values or stamps, and values above MAX_ABS_SAMPLE, are skipped
+   (``nan_skipped``). A stamp equal to the newest accepted stamp of its stream is a
+   ``duplicate``, an older one is ``late``; both are skipped (the grid only moves forward). When
+   both streams jump back by more than max(1 s, max_gap) (sim time reset, bag loop) the
+   alignment restarts on the new timeline (``clock_resets``). Samples waiting for the other
+   stream are bounded (``pending_cap``; the oldest are dropped: ``overflow``).
 2. **Alignment** on one grid. With ``sample_rate`` fs > 0 the grid is t_k = t_a + k / fs,
    anchored at the first excitation stamp t_a (re-anchored after an excitation gap), so a
    uniformly sampled command lands on it exactly. With ``sample_rate`` 0 the excitation stamps
@@ -36,7 +39,10 @@ Pipeline, per batch of timestamped samples of either stream:
    divided by the total weight (``correlation.weighted_cross_correlation`` is the batch form).
 5. **Solve** on an immutable snapshot (``solve_snapshot``, safe in a worker thread): CLS ARX /
    mu-Markov step 1 on the correlation sums, step 2 on the raw window; any other method through
-   ``methods.identify`` on the raw window.
+   ``methods.identify`` on the raw window. No model (``status``) while the window fills, when
+   the input is not persistently exciting (absolutely, or relative to the windows behind the
+   published models: ``min_excitation``), when the published model fits the window clearly
+   better (``kept``), or when the method fails or raises (never propagated).
 """
 
 from __future__ import annotations
@@ -64,6 +70,7 @@ CLS_STRUCTURES = {"cls-arx": "arx", "cls-markov": "markov"}
 MAX_WINDOW = 1_000_000
 MAX_TAU_MAX = 2_000
 MAX_ABS_SAMPLE = 1e100  # |x| above this is screened like NaN: cubes of window sums stay finite
+PENDING_SAMPLES = 2_000_000  # per stream, waiting for the other stream (32 MB); at least 4 windows
 CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older than its stream's newest: clock reset
 STREAMS = ("excitation", "response")
 
@@ -176,6 +183,16 @@ class EngineStats:
     first_stamp: dict = field(default_factory=dict)  # stream -> first accepted stamp
     last_stamp: dict = field(default_factory=dict)  # stream -> newest accepted stamp
     accepted: dict = field(default_factory=lambda: {s: 0 for s in STREAMS})
+    bad_values: dict = field(default_factory=lambda: {s: 0 for s in STREAMS})  # finite stamp, non-finite value
+
+    def missing(self, stream: str) -> int:
+        """Samples of ``stream`` that the stamps say were sent but never arrived (a uniform
+        stream at ``sample_rate`` since its first stamp, or the last clock reset; 0 while the
+        rate is unknown): what the middleware dropped before the node saw it."""
+        span = self.last_stamp.get(stream, 0.0) - self.first_stamp.get(stream, 0.0)
+        if not self.sample_rate or stream not in self.first_stamp:
+            return 0
+        return max(0, round(span * self.sample_rate) + 1 - self.accepted[stream] - self.bad_values[stream])
 
     def rate(self, stream: str) -> float:
         """Accepted samples per second of stamp time for ``stream`` ("excitation", "response")."""
@@ -189,14 +206,15 @@ class EngineStats:
         return (self.aligned - self.aligned_before_reset) / span if span > 0 else 0.0
 
     def as_dict(self) -> dict:
-        doc = {k: v for k, v in asdict(self).items() if k not in ("first_stamp", "last_stamp", "accepted")}
+        internal = ("first_stamp", "last_stamp", "accepted", "bad_values")
+        doc = {k: v for k, v in asdict(self).items() if k not in internal}
         doc.update(received_rate_excitation=self.rate("excitation"), received_rate_response=self.rate("response"),
                    aligned_rate=self.aligned_rate)
         return doc
 
     def copy(self) -> EngineStats:
         return replace(self, first_stamp=dict(self.first_stamp), last_stamp=dict(self.last_stamp),
-                       accepted=dict(self.accepted))
+                       accepted=dict(self.accepted), bad_values=dict(self.bad_values))
 
 
 @dataclass(frozen=True, eq=False)
@@ -233,29 +251,50 @@ class SolveOutcome:
 
 
 class _Stream:
-    """Accepted samples of one stream not yet consumed by the grid (plus the one before)."""
+    """Accepted samples of one stream not yet consumed by the grid (plus the one before).
+    Appends are kept as parts and joined when the grid needs them, so a stream that runs far
+    ahead of the other one costs O(samples), not O(samples x appends)."""
 
     def __init__(self) -> None:
-        self.t = np.empty(0)
-        self.x = np.empty(0)
+        self._parts: list[tuple[np.ndarray, np.ndarray]] = []
+        self.size = 0
         self.last = -np.inf
         self.previous_message: float | None = None
         self.jumped: list[tuple[np.ndarray, np.ndarray]] = []  # samples since this stream's stamps jumped back
 
+    def _joined(self) -> tuple[np.ndarray, np.ndarray]:
+        if len(self._parts) != 1:
+            joined = (np.concatenate([p[0] for p in self._parts]) if self._parts else np.empty(0),
+                      np.concatenate([p[1] for p in self._parts]) if self._parts else np.empty(0))
+            self._parts = [joined]
+        return self._parts[0]
+
+    @property
+    def t(self) -> np.ndarray:
+        return self._joined()[0]
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._joined()[1]
+
     def append(self, t: np.ndarray, x: np.ndarray, cap: int) -> int:
-        self.t = np.concatenate([self.t, t])
-        self.x = np.concatenate([self.x, x])
-        self.last = float(self.t[-1]) if self.t.size else self.last
-        dropped = max(0, self.t.size - cap)
+        """Add accepted samples; beyond ``cap`` pending samples the oldest are dropped (returned)."""
+        if t.size:
+            self._parts.append((t, x))
+            self.size += t.size
+            self.last = float(t[-1])
+        dropped = max(0, self.size - cap)
         if dropped:
             self.drop(dropped)
         return dropped
 
     def drop(self, count: int) -> None:
-        self.t, self.x = self.t[count:], self.x[count:]
+        t, x = self._joined()
+        self._parts = [(t[count:], x[count:])]
+        self.size = t.size - min(count, t.size)
 
     def clear(self) -> None:
-        self.t, self.x = np.empty(0), np.empty(0)
+        self._parts, self.size = [], 0
 
     def segment_end(self, index: int, max_gap: float) -> tuple[float, float | None]:
         """(stamp where the segment holding sample ``index`` ends, stamp of the first sample after
@@ -461,7 +500,7 @@ class StreamAligner:
     @property
     def pending_cap(self) -> int:
         """Samples of one stream held while waiting for the other (older ones are dropped: ``overflow``)."""
-        return max(4 * self.config.window, 100_000)
+        return max(4 * self.config.window, PENDING_SAMPLES)
 
     def add_both(self, batches: dict[str, tuple[np.ndarray, np.ndarray]]) -> int:
         """Add (stamps, values) of both streams in pieces of at most pending_cap / 4 samples,
@@ -503,6 +542,7 @@ class StreamAligner:
         with np.errstate(invalid="ignore"):
             finite = np.isfinite(t) & np.isfinite(x) & (np.abs(x) <= MAX_ABS_SAMPLE)
         self.stats.nan_skipped += int(x.size - finite.sum())
+        self.stats.bad_values[stream] += int(np.count_nonzero(~finite & np.isfinite(t)))
         return self._add_screened(stream, t[finite], x[finite])
 
     def _add_screened(self, stream: str, t: np.ndarray, x: np.ndarray) -> int:
@@ -550,7 +590,7 @@ class StreamAligner:
             s.clear()
             s.last = -np.inf
             self.stats.first_stamp.pop(name, None)
-            self.stats.accepted[name] = 0
+            self.stats.accepted[name] = self.stats.bad_values[name] = 0
         self._anchor, self._k, self._last_grid = None, 0, -np.inf
         if self._segment_samples:
             self._segment_samples = 0
@@ -611,7 +651,7 @@ class StreamAligner:
         tol = GRID_TOLERANCE / self.rate
         max_gap = cfg.max_gap or 5.0 / self.rate
         ex, re = self._streams["excitation"], self._streams["response"]
-        while ex.t.size and re.t.size:
+        while ex.size and re.size:
             tk = self._next_grid_time(ex, max(ex.t[0], re.t[0]), tol)
             if tk is None:
                 return
@@ -712,6 +752,10 @@ class StreamingEngine:
     def flush(self) -> int:
         """Add the messages buffered with ``add_message(..., flush=False)``."""
         return self._aligner.flush()
+
+    def add_streams(self, batches: dict[str, tuple[np.ndarray, np.ndarray]]) -> int:
+        """Add (stamps, values) of both streams at once, interleaved in time (``StreamAligner.add_both``)."""
+        return self._aligner.add_both(batches)
 
     @property
     def buffered(self) -> int:

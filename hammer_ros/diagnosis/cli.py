@@ -64,6 +64,7 @@ def summary(d: Diagnosis) -> str:
     if others:
         lines.append(f"also fitted (gain): {', '.join(others)}")
     failed = [e for e in d.evidence if not e.passed]
-    lines.append(f"evidence  {len(d.evidence) - len(failed)} of {len(d.evidence)} tests passed" + (":" if failed else ""))
+    passed = len(d.evidence) - len(failed)
+    lines.append(f"evidence  {passed} of {len(d.evidence)} tests passed" + (":" if failed else ""))
     lines += [f"  FAIL {e.test}: {e.value:.4g} > {e.bound:.4g}" for e in failed]
     return "\n".join(lines)

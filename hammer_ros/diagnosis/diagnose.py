@@ -22,7 +22,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..result import fit_percent, rms_error
-from .evidence import CauseTest, LineTest, WindowTest, signature_tests, spectral_lines, windowed_variation
+from .evidence import (
+    CauseTest,
+    LineTest,
+    WindowTest,
+    correlation_shape_test,
+    signature_tests,
+    spectral_lines,
+    windowed_variation,
+)
 from .extensions import EXTENSIONS, Context, ExtendedModel
 from .hammerstein import HammersteinModel, fit_baseline, transient_samples
 from .residual_tests import CorrelationTest, Evidence, residual_tests
@@ -121,8 +129,9 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
     x_all = np.concatenate([x_est, x_val])
     windows = windowed_variation(split.y_all, x_all, skip)
+    shape = correlation_shape_test(split.v_est, split.y_est)
     cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, val_skip)) + (
-        lines.cause_test(), windows.cause_test())
+        lines.cause_test(), windows.cause_test()) + ((shape,) if shape is not None else ())
 
     ctx = Context(split, base, lines, windows)
     supported = sorted((t for t in cause_tests if t.supports), key=lambda t: -t.explained)[:MAX_CANDIDATES]
@@ -156,7 +165,8 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         details={} if cause == "none" else extensions[cause].details,
         baseline_model={"order": base.order, "delay": base.delay,
                         "poles": [[float(p.real), float(p.imag)] for p in base.linear.poles],
-                        "nonlinearity": base.nonlinearity.to_json((float(split.v_est.min()), float(split.v_est.max())))},
+                        "nonlinearity": base.nonlinearity.to_json((float(np.min(split.v_est)),
+                                                                    float(np.max(split.v_est))))},
     )
     return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions)
 
@@ -172,7 +182,7 @@ def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, .
         separation = float(np.clip(1.0 - np.log(max(runner_up, 1.0)) / np.log(g), 0.0, 1.0))
         return float(np.clip(strength * (0.5 + 0.5 * separation), 0.0, 1.0))
     failed = sum(1 for e in evidence if not e.passed) / max(len(evidence), 1)
-    closest = max(list(gains.values()) + [1.0])
+    closest = max([*gains.values(), 1.0])
     near = float(np.clip(np.log(closest) / np.log(MIN_GAIN), 0.0, 1.0))
     return float(np.clip((1.0 - 0.5 * failed) * (1.0 - 0.5 * near), 0.0, 1.0))
 

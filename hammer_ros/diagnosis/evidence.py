@@ -10,6 +10,7 @@ Each cause leaves its own first-order signature in the baseline's simulation err
 | parallel_path | linear dynamics of v itself: lags 0..11 and first-order filters of v |
 | unmodeled_dynamics | linear dynamics of F(v): lags 0..11 and first-order filters of F(v) |
 | backlash | G[F'(v) s], s = sign of the last input change (play shifts v by -w/2 s) |
+| parallel_path (i.i.d. input) | first- and second-order input-output cross-correlations of unlike shape |
 | periodic_disturbance | sinusoids at lines of the spectrum of e that v and x do not have |
 | time_varying | a gain / lag / residual level that changes from window to window |
 
@@ -29,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, signal, stats
 
+from ..correlation import centred_square, cross_correlation, second_order_cross_correlation
 from ..piecewise_linear_ls import interval_index
 from ..regression import lagged_columns, solve_least_squares
 from .hammerstein import HammersteinModel
@@ -137,6 +139,37 @@ def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np
         f_value, critical, explained = partial_f_test(e, nuisance, columns, skip)
         tests.append(CauseTest(Evidence(f"{name} (F)", f_value, critical, f_value <= critical, cause), explained))
     return tests
+
+
+def correlation_shape_test(v: np.ndarray, y: np.ndarray, max_lag: int = 20) -> CauseTest | None:
+    """Billings-Fakhouri's separation of a parallel path (paper 003, eqs. 13, 20, 28): for an
+    i.i.d. input, a Hammerstein system's first-order cross-correlation phi_x'y'(tau) and its
+    second-order one phi_x'^2y'(tau) are both proportional to the same impulse response h(tau);
+    a linear path in parallel adds its own impulse response to the first only. The test: the
+    2 x (L+1) matrix of the two correlations (tau = 0..L), each row divided by its standard
+    error, has rank one up to noise; its smaller singular value squared is ~ chi^2(L) then.
+    None when the input is not white (the proportionality needs an i.i.d. input)."""
+    x = np.asarray(v, dtype=float) - np.mean(v)
+    n = x.size
+    rho = np.abs(_autocorrelation(x, 10)[1:])
+    if np.max(rho) > 4.0 / np.sqrt(n):
+        return None
+    y = np.asarray(y, dtype=float)
+    first = cross_correlation(x, y - y.mean(), max_lag)[max_lag:]
+    second = second_order_cross_correlation(v, y, max_lag)[max_lag:]
+    w = centred_square(v)
+    sigma1 = np.sqrt(np.var(x) * np.var(y) / n)
+    sigma2 = np.sqrt(np.var(w) * np.var(y) / n)
+    smallest = np.linalg.svd(np.vstack([first / sigma1, second / sigma2]), compute_uv=False)[-1]
+    value, bound = float(smallest**2), float(stats.chi2.ppf(LEVEL, max_lag))
+    ev = Evidence("2nd- vs 1st-order cross-correlation shape (Billings-Fakhouri, chi2)", value, bound, value <= bound,
+                  "parallel_path")
+    return CauseTest(ev, 0.0)
+
+
+def _autocorrelation(x: np.ndarray, max_lag: int) -> np.ndarray:
+    c = cross_correlation(x, x, max_lag)[max_lag:]
+    return c / c[0] if c[0] > 0 else c
 
 
 # --------------------------------------------------------------------------- spectral lines
@@ -250,7 +283,6 @@ def _step_trend(seq: np.ndarray) -> tuple[float, float, int]:
     trend = float(np.max(np.abs(slope) / se))
     j = np.arange(2, m - 1)[:, None]  # a step after the first j windows
     head_sum = np.cumsum(centred, axis=0)[j[:, 0] - 1]
-    head_sq = np.cumsum(centred**2, axis=0)[j[:, 0] - 1]
     total_sq = np.sum(centred**2, axis=0)
     mean1, mean2 = head_sum / j, -head_sum / (m - j)
     resid = total_sq - j * mean1**2 - (m - j) * mean2**2
@@ -265,7 +297,7 @@ def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: in
     y ~ c + g x + l dx (gain g, lag l) and take the residual level; test the three sequences
     for a step or a trend against their permutation distribution (fixed seed)."""
     y, x = np.asarray(y, float)[skip:], np.asarray(x, float)[skip:]
-    windows = int(np.clip(y.size // 250, 8, 40))
+    windows = int(np.clip(y.size // 120, 16, 40))  # >= 16: a perfect step is then a 1e-4 event, not 3 %
     length = y.size // windows
     starts = skip + length * np.arange(windows)
     rows, ssr_local = [], 0.0
@@ -286,7 +318,8 @@ def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: in
     used = slice(0, windows * length)
     basis = np.column_stack([np.ones(windows * length), x[used], dx[used]])
     ssr_global = float(np.sum((y[used] - basis @ solve_least_squares(basis, y[used])) ** 2))
-    explained = max(0.0, 1.0 - ssr_local / ssr_global - 3.0 * (windows - 1) / (windows * length)) if ssr_global > 0 else 0.0
+    extra_parameters = 3.0 * (windows - 1) / (windows * length)
+    explained = max(0.0, 1.0 - ssr_local / ssr_global - extra_parameters) if ssr_global > 0 else 0.0
     gain = seq[:, 0]
     change_point = drift = None
     if step >= trend:

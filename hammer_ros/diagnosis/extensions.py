@@ -18,12 +18,13 @@ from scipy.optimize import minimize_scalar
 from ..billings_fakhouri import identify_feedforward
 from ..errors import IdentificationError
 from ..linear import LinearModel
-from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map
+from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map, rank_one_factors
 from ..regression import build_regression, solve_least_squares
 from ..simulate import play_operator, simulate_hammerstein_feedback
 from .causes import EXTENSION
 from .evidence import LineTest, WindowTest
 from .hammerstein import (
+    SELECTION_SAMPLES,
     HammersteinModel,
     HammersteinParameters,
     bic,
@@ -39,6 +40,7 @@ MAX_EXTRA_ORDER = 4
 MAX_ORDER = 8
 SLOW_FIT_SAMPLES = 2000  # the sample-by-sample feedback loop is refined on at most this many samples
 OUTPUT_MAP_BREAKPOINTS = 6
+IMPULSE_LENGTH = 400
 FEEDBACK_BREAKPOINTS = 5
 
 
@@ -92,15 +94,20 @@ def _order_details(model: HammersteinModel) -> dict:
 
 def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel | None:
     """Orders n+1 .. n+4 (at most 8) on the baseline's partition, upwards until two orders in a
-    row do not improve; the one with the smallest simulation-error BIC on the estimation data,
-    if it beats the baseline's."""
-    base, s, skip = ctx.baseline, ctx.split, ctx.skip
-    v, y = s.v_est, s.y_est
+    row do not improve; the one with the smallest simulation-error BIC on the estimation data
+    (its last SELECTION_SAMPLES samples; the chosen model is then refined on all of them),
+    if it beats the baseline's. Besides the PLLS start, each order is started from the
+    baseline's denominator times a few extra modes (``_extra_modes``): a slow or a resonant
+    mode the equation-error start tends to miss."""
+    base, s = ctx.baseline, ctx.split
+    v, y = s.v_est[-SELECTION_SAMPLES:], s.y_est[-SELECTION_SAMPLES:]
+    skip = min(ctx.skip, v.size // 5)
     best, best_score = None, bic(y[skip:], base.simulate(v)[skip:], base.parameter_count())
     misses = 0
     for order in range(base.order + 1, min(base.order + MAX_EXTRA_ORDER, MAX_ORDER) + 1):
+        starts = tuple(np.convolve(base.a, extra) for extra in _extra_modes(order - base.order))
         try:
-            model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False)
+            model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False, denominators=starts)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             continue
         score = bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())
@@ -112,8 +119,21 @@ def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel | None:
                 break
     if best is None:
         return None
+    if v.size < s.n_est:
+        best = refine_hammerstein(best, s.v_est, s.y_est, iterations=15)
     return ExtendedModel("unmodeled_dynamics", f"hammerstein order {best.order}", s.validation_output(best.simulate),
                          _order_details(best))
+
+
+def _extra_modes(count: int) -> list[np.ndarray]:
+    """Denominator factors of degree ``count`` (1 or 2; none above): real poles from fast to
+    slow, lightly damped pairs across the band."""
+    if count == 1:
+        return [np.array([1.0, -p]) for p in (0.6, 0.9, 0.97)]
+    if count == 2:
+        pairs = [np.real(np.poly([0.93 * np.exp(1j * w), 0.93 * np.exp(-1j * w)])) for w in (0.3, 0.8, 1.5, 2.3)]
+        return [*pairs, np.real(np.poly([0.6, 0.95]))]
+    return []
 
 
 # --------------------------------------------------------------------------- backlash
@@ -213,7 +233,9 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
     on the baseline's breakpoints and h on quantiles of y, or the baseline itself (h = 0) when
     PLLS's equation-error loop simulates worse (it can be unstable under coloured noise), then
     the simulation-error refinement of (A, B, f, h) on at most SLOW_FIT_SAMPLES samples (the
-    loop is simulated sample by sample)."""
+    loop is simulated sample by sample). h keeps PLLS's normalisation alpha = 0 (its slopes sum
+    to zero, eq. 60): its linear part lives in A, which removes the ridge (h - alpha y,
+    A + alpha B) of eq. 3 along which the refinement would otherwise drift."""
     base, s = ctx.baseline, ctx.split
     fit = s.estimation_tail(SLOW_FIT_SAMPLES + ctx.skip)
     v, y = fit.v_est, fit.y_est
@@ -239,7 +261,8 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
         b[free_b] = theta[n : n + nb]
         k = n + nb
         f_map = point_slope_map(f_part, r_f, theta[k : k + nf], float(theta[k + nf]))
-        h_map = point_slope_map(h_part, r_h, theta[k + nf + 1 :], 0.0)
+        h_slopes = np.concatenate([theta[k + nf + 1 :], [-np.sum(theta[k + nf + 1 :])]])
+        h_map = point_slope_map(h_part, r_h, h_slopes, 0.0)
         return a, b, f_map, h_map
 
     skip = min(ctx.skip, v.size // 5)
@@ -248,13 +271,14 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
         return _feedback_simulator(*unpack(theta), preroll)(v)
 
     f0, h0 = est.nonlinearity, est.feedback
-    starts = [np.concatenate([a0[1:], b0[free_b], f0.slopes, [f0.values[r_f - 1] - h0.values[r_h - 1]], h0.slopes])]
+    starts = [np.concatenate([a0[1:], b0[free_b], f0.slopes, [f0.values[r_f - 1] - h0.values[r_h - 1]],
+                              h0.slopes[:-1]])]
     b_base = np.pad(base.b, (0, max(0, b0.size - base.b.size)))[: b0.size]
     if abs(b_base[fixed]) > 0 and base.a.size == a0.size:
         scale = b0[fixed] / b_base[fixed]  # the fixed coefficient keeps PLLS's value
         f_fit = solve_least_squares(np.column_stack([point_slope_basis(v, f_part, r_f), np.ones(v.size)]),
                                     base.static(v)) / scale
-        starts.append(np.concatenate([base.a[1:], b_base[free_b] * scale, f_fit, np.zeros(h_part.size + 1)]))
+        starts.append(np.concatenate([base.a[1:], b_base[free_b] * scale, f_fit, np.zeros(h_part.size)]))
     costs = [float(np.sum((simulate_theta(t) - y)[skip:] ** 2)) for t in starts]
     costs = [c if np.isfinite(c) else np.inf for c in costs]
     theta = refine(simulate_theta, starts[int(np.argmin(costs))], y, 12, skip)
@@ -263,7 +287,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
     output = s.validation_output(simulate)
     if not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y):
         return None
-    maps = (map_plot("f (input map)", f_map, v), map_plot("h (output feedback map)", h_map, y))
+    maps = (map_plot("f (input map)", f_map, v), map_plot("h (feedback map; its linear part is in A)", h_map, y))
     details = {"feedback_breakpoints": h_part.tolist(), **_order_details(replace(base, a=a, b=b))}
     return ExtendedModel("output_feedback", "hammerstein / non-linear feedback (PLLS)", output, details, maps)
 
@@ -271,7 +295,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
 # --------------------------------------------------------------------------- parallel path
 
 
-def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int, skip: int) -> tuple[np.ndarray, np.ndarray]:
+def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int) -> tuple[np.ndarray, np.ndarray]:
     """(b, a) of an ARX fit of target on u (shared builder), stabilised."""
     reg = build_regression(target, u, order, delay)
     theta = solve_least_squares(reg.phi, reg.target)
@@ -282,9 +306,11 @@ def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int, skip:
 
 def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
     """Feedforward system y = G1[F(v)] + G2[v] (paper 003 sec. 3, Fig. 3): started from the
-    baseline plus a second-order path fitted to its residual, and from the Billings-Fakhouri
-    correlation estimate (``billings_fakhouri.identify_feedforward``, exact for a Gaussian
-    input) when it applies; the start with the smaller simulation error after refinement wins."""
+    baseline plus a second-order path fitted to its residual, from the common-denominator
+    least-squares fit (``_common_denominator_start``; the baseline may have absorbed a slow
+    path into its own dynamics), and from the Billings-Fakhouri correlation estimate
+    (``billings_fakhouri.identify_feedforward``, exact for a Gaussian input) when it applies;
+    the start with the smallest simulation error after refinement wins."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
     params = HammersteinParameters(base)
@@ -304,11 +330,13 @@ def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
     eta = base.basis(v)
     starts = []
     residual = y - base.simulate(v)
-    b2, a2 = _linear_fit(v, residual, path_order, 0, skip)
+    b2, a2 = _linear_fit(v, residual, path_order, 0)
     starts.append(np.concatenate([params.pack(base), a2[1:], b2]))
-    bf = _billings_fakhouri_start(ctx, params, path_order)
-    if bf is not None:
-        starts.append(bf)
+    for start in (_common_denominator_start(ctx, params, path_order),
+                  _billings_fakhouri_start(ctx, params, path_order)):
+        if start is not None:
+            starts.append(start)
+
     best, best_cost = None, np.inf
     for theta0 in starts:
         theta = refine(lambda t: simulate_with(t, v, eta), theta0, y, 40, skip)
@@ -328,11 +356,39 @@ def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
                          details, maps)
 
 
+def _common_denominator_start(ctx: Context, params: HammersteinParameters, path_order: int) -> np.ndarray | None:
+    """A start from one least-squares solve: y = [B(q) F(v) + C(q) v] / A(q) with A of order
+    n + path_order (both paths' poles), i.e. PLLS (paper 001 eq. 23) with the input itself as
+    one more channel; B F by rank one (eqs. 35-38); then G1 (order n) and G2 (order
+    path_order) fitted to the impulse responses of B/A and C/A."""
+    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    v, y = s.v_est, s.y_est
+    order = base.order + path_order
+    channels = np.column_stack([base.basis(v), v])
+    try:
+        reg = build_regression(y, channels, order, 0)
+    except ValueError:
+        return None
+    theta = solve_least_squares(np.column_stack([reg.phi, np.ones(reg.rows.size)])[skip:], reg.target[skip:])
+    a, coefficients = reg.split(theta[:-1])
+    b, mu = rank_one_factors(coefficients[:, :-1], None, a)
+    if not np.all(np.isfinite(b)) or abs(np.sum(b)) < 1e-12:
+        return None
+    den = stabilised_denominator(np.concatenate([[1.0], a]))
+    impulse = np.eye(1, IMPULSE_LENGTH, 0)[0]
+    b1, a1 = _linear_fit(impulse, signal.lfilter(b, den, impulse), base.order, base.delay)
+    b2, a2 = _linear_fit(impulse, signal.lfilter(coefficients[:, -1], den, impulse), path_order, 0)
+    model = replace(base, a=a1, b=np.pad(b1, (0, max(0, base.b.size - b1.size)))[: base.b.size], slopes=mu,
+                    kappa=float(theta[-1] / np.sum(b)))
+    packed = params.pack_rescaled(model)
+    return None if packed is None else np.concatenate([packed, a2[1:], b2])
+
+
 def _billings_fakhouri_start(ctx: Context, params: HammersteinParameters, path_order: int) -> np.ndarray | None:
     """The Billings-Fakhouri feedforward estimate in this module's parameters: its branch
     polynomial projected on the baseline's piecewise-linear basis, its parallel path
     re-fitted at ``path_order``."""
-    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     try:
         fit = identify_feedforward(v, y, base.order, max(base.delay, 1), poly=3)
@@ -345,14 +401,15 @@ def _billings_fakhouri_start(ctx: Context, params: HammersteinParameters, path_o
     coefficients = solve_least_squares(basis, branch_input)
     b = np.zeros_like(base.b)
     b[: min(b.size, fit.branch.b.size)] = fit.branch.b[: b.size]
-    if fit.branch.a.size != base.a.size or abs(b[params.fixed]) < 1e-9 * np.max(np.abs(b)):
+    if fit.branch.a.size != base.a.size:
         return None
-    scale = base.b[params.fixed] / b[params.fixed]  # the fixed coefficient keeps the baseline's value
-    model = replace(base, a=stabilised_denominator(fit.branch.a), b=b * scale, slopes=coefficients[:-1] / scale,
-                    kappa=float(coefficients[-1] / scale))
+    packed = params.pack_rescaled(replace(base, a=stabilised_denominator(fit.branch.a), b=b,
+                                          slopes=coefficients[:-1], kappa=float(coefficients[-1])))
+    if packed is None:
+        return None
     path = fit.parallel_path.simulate(np.eye(1, 200, 0)[0])
-    b2, a2 = _linear_fit(np.eye(1, 200, 0)[0], path, path_order, 0, 0)
-    return np.concatenate([params.pack(model), a2[1:], b2])
+    b2, a2 = _linear_fit(np.eye(1, 200, 0)[0], path, path_order, 0)
+    return np.concatenate([packed, a2[1:], b2])
 
 
 # --------------------------------------------------------------------------- time-varying

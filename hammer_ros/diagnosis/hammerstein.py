@@ -92,6 +92,17 @@ class HammersteinParameters:
         knots = model.partition if self.free_knots else []
         return np.concatenate([model.a[1:], model.b[self.free_b], model.slopes, [model.kappa], knots])
 
+    def pack_rescaled(self, model: HammersteinModel) -> np.ndarray | None:
+        """theta of ``model`` (same order, partition and primary index) after moving the scale
+        between G and F so that its fixed coefficient equals the template's; None if it has
+        a different structure or a zero there."""
+        t = self.template
+        if (model.a.size != t.a.size or model.b.size != t.b.size or model.primary != t.primary
+                or model.partition.size != t.partition.size or abs(model.b[self.fixed]) < 1e-12):
+            return None
+        c = t.b[self.fixed] / model.b[self.fixed]
+        return self.pack(replace(model, b=model.b * c, slopes=model.slopes / c, kappa=model.kappa / c))
+
     def unpack(self, theta: np.ndarray) -> HammersteinModel:
         n, nb, ns = self.template.order, self.free_b.size, self.template.slopes.size
         b = self.template.b.copy()
@@ -102,10 +113,15 @@ class HammersteinParameters:
                        slopes=np.asarray(theta[n + nb : n + nb + ns]), kappa=float(theta[n + nb + ns]))
 
 
-def quantile_partition(v: np.ndarray, count: int) -> np.ndarray:
-    """``count`` breakpoints at the quantiles i/(count+1) of v, without duplicates and without
-    those that would leave an interval of paper 001's eq. 6 empty."""
-    knots = np.unique(np.quantile(np.asarray(v, dtype=float), np.arange(1, count + 1) / (count + 1)))
+def quantile_partition(v: np.ndarray, count: int, tails: bool = False) -> np.ndarray:
+    """``count`` breakpoints at the quantiles i/(count+1) of v (``tails``: plus the 1 % and
+    99 % quantiles, for maps that keep bending beyond the bulk of the data, e.g. polynomials),
+    without duplicates and without those that would leave an interval of paper 001's eq. 6
+    empty."""
+    probabilities = np.arange(1, count + 1) / (count + 1)
+    if tails:
+        probabilities = np.concatenate([[0.01], probabilities, [0.99]])
+    knots = np.unique(np.quantile(np.asarray(v, dtype=float), probabilities))
     return drop_empty_intervals(v, knots)
 
 
@@ -173,22 +189,31 @@ def refine_hammerstein(model: HammersteinModel, v: np.ndarray, y: np.ndarray, it
 
 
 FREE_KNOT_SAMPLES = 20000  # the breakpoints are refined on at most this many (the last) samples
+SELECTION_SAMPLES = 20000  # order, delay and breakpoints are chosen on at most this many
 
 
 def fit_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int,
-                    partition: np.ndarray | None = None, free_knots: bool = True) -> HammersteinModel:
-    """PLLS estimate on a quantile partition, refined on the simulation error, first with the
-    breakpoints fixed, then (``free_knots``) with the breakpoints free as well, so that a kink,
-    a dead zone or a relay jump is not smeared over the gap between two quantiles."""
+                    partition: np.ndarray | None = None, free_knots: bool = True,
+                    denominators: tuple[np.ndarray, ...] = ()) -> HammersteinModel:
+    """PLLS estimate on a quantile partition (or its Steiglitz-McBride iteration, or that
+    iteration started from one of the given ``denominators``, whichever simulates best),
+    refined on the simulation error with the breakpoints fixed, then (``free_knots``) with the
+    breakpoints free as well (``free_breakpoints``)."""
     if partition is None:
         partition = quantile_partition(v, default_breakpoints(v.size))
     start = plls_hammerstein(v, y, order, delay, partition)
     skip = transient_samples(start.linear.poles, v.size)
     candidates = [start, steiglitz_mcbride(start, v, y)]
+    candidates += [steiglitz_mcbride(replace(start, a=a), v, y, 3) for a in denominators]
     costs = [float(np.sum((y - m.simulate(v))[skip:] ** 2)) for m in candidates]
     model = refine_hammerstein(candidates[int(np.nanargmin(costs))], v, y)
-    if not free_knots:
-        return model
+    return free_breakpoints(model, v, y) if free_knots else model
+
+
+def free_breakpoints(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> HammersteinModel:
+    """The refinement with the breakpoints free as well, so that a kink, a dead zone or a relay
+    jump is not smeared over the gap between two quantiles (on the last FREE_KNOT_SAMPLES
+    samples, then the other parameters on all of them)."""
     tail = slice(max(0, v.size - FREE_KNOT_SAMPLES), None)
     model = prune_breakpoints(refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True), v)
     return refine_hammerstein(model, v, y, iterations=10) if tail.start else model
@@ -222,9 +247,10 @@ def equation_error_bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray) ->
 
 
 def select_delay(v: np.ndarray, y: np.ndarray, order: int, partition: np.ndarray) -> int:
-    """Relative degree 0..min(3, order) with the smallest equation-error BIC."""
+    """Relative degree 1..min(3, order) with the smallest equation-error BIC (a sampled plant
+    driven through a zero-order hold has no direct feedthrough; pass delay 0 explicitly)."""
     scores = {}
-    for d in range(0, min(3, order) + 1):
+    for d in range(1, min(3, order) + 1):
         try:
             scores[d] = equation_error_bic(plls_hammerstein(v, y, order, d, partition), v, y)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
@@ -236,14 +262,48 @@ def select_delay(v: np.ndarray, y: np.ndarray, order: int, partition: np.ndarray
 
 def fit_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None) -> HammersteinModel:
     """The baseline: the nominal order when given (else the order 1..4 with the smallest
-    simulation-error BIC), the given delay (else the one with the smallest equation-error BIC)."""
+    simulation-error BIC), the given delay (else the one with the smallest equation-error BIC),
+    the breakpoints among ``breakpoint_counts`` with the smallest simulation-error BIC, then
+    the breakpoints refined (``free_breakpoints``). The choices are made on the last
+    SELECTION_SAMPLES samples; the chosen model is then refined on all of them."""
+    tail = slice(max(0, v.size - SELECTION_SAMPLES), None)
+    chosen = _select_baseline(v[tail], y[tail], order, delay)
+    if tail.start:
+        chosen = refine_hammerstein(chosen, v, y, iterations=15)
+    return free_breakpoints(chosen, v, y)
+
+
+def _select_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None) -> HammersteinModel:
     partition = quantile_partition(v, default_breakpoints(v.size))
-    orders = [order] if order else list(range(1, MAX_ORDER_SEARCH + 1))
-    best, best_score = None, np.inf
-    for n in orders:
-        d = select_delay(v, y, n, partition) if delay is None else min(delay, n)
-        model = fit_hammerstein(v, y, n, d, partition)
-        score = bic(y, model.simulate(v), model.parameter_count())
-        if score < best_score:
-            best, best_score = model, score
-    return best
+    if order:
+        best_order = order
+        best_delay = select_delay(v, y, order, partition) if delay is None else min(delay, order)
+    else:
+        scored = []
+        for n in range(1, MAX_ORDER_SEARCH + 1):
+            d = select_delay(v, y, n, partition) if delay is None else min(delay, n)
+            scored.append((_bic(fit_hammerstein(v, y, n, d, partition, free_knots=False), v, y), n, d))
+        _, best_order, best_delay = min(scored)
+    fits = []
+    for count, tails in breakpoint_counts(v.size):
+        try:
+            partition = quantile_partition(v, count, tails)
+            model = fit_hammerstein(v, y, best_order, best_delay, partition, free_knots=False)
+        except IdentificationError:
+            continue
+        fits.append((_bic(model, v, y), count, model))
+    if not fits:
+        raise IdentificationError("no Hammerstein model could be fitted to the estimation data")
+    return min(fits, key=lambda f: f[0])[2]
+
+
+def breakpoint_counts(samples: int) -> tuple[tuple[int, bool], ...]:
+    """(number of quantile breakpoints, with tail breakpoints) tried by the baseline: 3 .. 16
+    breakpoints, at least ~150 samples per interval."""
+    counts = [c for c in (3, 6, 10, 16) if c == 3 or samples >= 150 * (c + 1)]
+    return tuple((c, tails) for c in counts for tails in ((False, True) if c >= 10 else (False,)))
+
+
+def _bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> float:
+    skip = transient_samples(model.linear.poles, v.size)
+    return bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())

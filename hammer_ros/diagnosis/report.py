@@ -20,7 +20,8 @@ EXCERPT = 1500  # samples of the validation record drawn in the time plots
 CSS = """
 body { font-family: -apple-system, "Segoe UI", Helvetica, Arial, sans-serif; margin: 24px auto; max-width: 1100px;
        color: #222; line-height: 1.4; }
-h1 { font-size: 1.5em; margin-bottom: 0.2em; } h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
+h1 { font-size: 1.5em; margin-bottom: 0.2em; }
+h2 { font-size: 1.2em; margin-top: 1.6em; border-bottom: 1px solid #ccc; }
 .verdict { font-size: 1.15em; padding: 10px 14px; border-radius: 6px; background: #eef5ff; border: 1px solid #b7d0f0; }
 .none { background: #eefaf0; border-color: #b5dfbd; }
 table { border-collapse: collapse; margin: 8px 0; font-size: 0.92em; }
@@ -109,7 +110,8 @@ def _evidence_table(evidence, explained) -> str:
 def _models(run: DiagnosisRun) -> str:
     d = run.diagnosis
     base = {k: v for k, v in d.to_json()["baseline"].items() if k != "nonlinearity"}
-    out = [f"<p>Baseline (Hammerstein, PLLS + simulation-error refinement): <code>{html.escape(json.dumps(base))}</code></p>"]
+    out = [f"<p>Baseline (Hammerstein, PLLS + simulation-error refinement): "
+           f"<code>{html.escape(json.dumps(_rounded(base)))}</code></p>"]
     if run.extended is not None:
         out.append(f"<p>Extended ({html.escape(run.extended.structure)}): "
                    f"<code>{html.escape(json.dumps(_rounded(run.extended.details)))}</code></p>")
@@ -150,7 +152,8 @@ def _validation_figure(run: DiagnosisRun):
     bottom.plot(k, (s.y_val - run.baseline_output)[part], color="tab:red", lw=0.8, label="baseline error")
     if run.extended is not None:
         out = run.extended.validation_output
-        top.plot(k, out[part], color="tab:blue", lw=1.0, ls="--", label=f"extended: {d.cause} (RMS {d.extended.rms:.3g})")
+        label = f"extended: {d.cause} (RMS {d.extended.rms:.3g})"
+        top.plot(k, out[part], color="tab:blue", lw=1.0, ls="--", label=label)
         bottom.plot(k, (s.y_val - out)[part], color="tab:blue", lw=0.8, label="extended error")
     top.set_ylabel("output")
     top.legend(loc="upper right", fontsize=8)
@@ -189,6 +192,7 @@ def _correlation_figure(run: DiagnosisRun):
 
 def _cause_figure(run: DiagnosisRun):
     import matplotlib.pyplot as plt
+    from matplotlib import ticker
 
     fig, (bars, spectrum, windows) = plt.subplots(1, 3, figsize=(13, 3.4), gridspec_kw={"width_ratios": [1.3, 1, 1]})
     tests = run.cause_tests
@@ -198,6 +202,8 @@ def _cause_figure(run: DiagnosisRun):
     bars.barh(np.arange(len(tests)), ratio, color=colors)
     bars.axvline(1.0, color="black", lw=1)
     bars.set_xscale("log")
+    bars.xaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+    bars.xaxis.set_minor_formatter(ticker.NullFormatter())
     bars.set_yticks(np.arange(len(tests)), [t.cause for t in tests], fontsize=8)
     bars.invert_yaxis()
     bars.set_xlabel("test statistic / bound (>1: fails)", fontsize=8)

@@ -133,7 +133,8 @@ def cross_test(name: str, x: np.ndarray, e: np.ndarray, max_lag: int = MAX_LAG, 
     if one_sided:
         r, lags = r[max_lag:], lags[max_lag:]
     sigma = bartlett_cross_sigma(x, e)
-    return CorrelationTest(name, lags, r, np.full(r.size, 1.96 * sigma), (lags == 0) if delta else np.zeros(r.size, bool))
+    excluded = (lags == 0) if delta else np.zeros(r.size, bool)
+    return CorrelationTest(name, lags, r, np.full(r.size, 1.96 * sigma), excluded)
 
 
 def residual_tests(u: np.ndarray, y: np.ndarray, e: np.ndarray, max_lag: int = MAX_LAG) -> list[CorrelationTest]:
