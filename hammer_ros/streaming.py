@@ -53,7 +53,6 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from .errors import HammerRosError, UsageError
 from .methods import METHODS, IdentifyOptions, identify
@@ -63,7 +62,7 @@ INFER_SAMPLES = 16  # excitation stamps used to infer the sample rate
 GRID_TOLERANCE = 0.01  # of a sample period: stamps this close to a grid point are on it
 PE_CONDITION_LIMIT = 1e8  # cond(R) above this: input not persistently exciting
 KEEP_MARGIN = 5.0  # fit points by which the published model must beat a new estimate on its window to stay
-CHUNK = 4096  # aligned samples per vectorised update (bounds the temporary lag matrix)
+CHUNK = 4096  # aligned samples per vectorised update (bounds the buffer headroom)
 CLS_STRUCTURES = {"cls-arx": "arx", "cls-markov": "markov"}
 # Documented resource limits (README "Robustness"): memory ~ 16 bytes x (window + 4 window pending
 # per stream) and one solve's regression; work per sample ~ tau_max.
@@ -313,18 +312,16 @@ class _Stream:
 
 def _lag_products(v: np.ndarray, y: np.ndarray, tau_max: int, weights: np.ndarray | None = None) -> np.ndarray:
     """Sums over the centres k = T..len-1-T of [v(k), y(k), y(k)] times [v, v, v^2](k - tau),
-    tau = -T..T, as a (3, 2T+1) array (optionally weighted per centre)."""
-    lag = 2 * tau_max + 1
+    tau = -T..T, as a (3, 2T+1) array (optionally weighted per centre).
+
+    ``np.correlate(x, c, 'valid')[j] = sum_n x(n + j) c(n)``: with x = v from the first sample
+    and c the centres, j = T - tau; one C loop per row, no lag matrix in memory."""
     rows = v.size - 2 * tau_max
-    sums = np.zeros((3, lag))
-    for start in range(0, rows, CHUNK):  # numpy copies the lag view for the product: bound it to CHUNK rows
-        stop = min(rows, start + CHUNK)
-        centre = np.stack([v[tau_max + start : tau_max + stop], y[tau_max + start : tau_max + stop]])
-        if weights is not None:
-            centre = centre * weights[start:stop]
-        part = v[start : stop + 2 * tau_max]
-        sums[:2] += centre @ sliding_window_view(part, lag)
-        sums[2] += centre[1] @ sliding_window_view(part * part, lag)
+    centre_v, centre_y = v[tau_max : tau_max + rows], y[tau_max : tau_max + rows]
+    if weights is not None:
+        centre_v, centre_y = centre_v * weights[:rows], centre_y * weights[:rows]
+    sums = np.stack([np.correlate(v, centre_v, "valid"), np.correlate(v, centre_y, "valid"),
+                     np.correlate(v * v, centre_y, "valid")])
     return sums[:, ::-1]
 
 
