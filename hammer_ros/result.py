@@ -68,6 +68,7 @@ class IdentificationResult:
         }
         if self.gain is not None:
             doc["gain"] = float(self.gain)
+        doc["stable"] = self.linear.is_stable()  # all poles inside the unit circle
         doc["a"] = self.linear.a[1:].tolist()
         doc["b"] = self.linear.b.tolist()
         if self.markov is not None:

@@ -105,3 +105,13 @@ def test_cli_user_errors_exit_2_with_one_line(tmp_path, argv, needle):
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0] and "Traceback" not in proc.stderr
+
+
+def test_result_json_flags_an_unstable_model(g1):
+    from hammer_ros.linear import LinearModel
+    from hammer_ros.result import IdentificationResult
+
+    unstable = LinearModel([0.0, 1.0], [1.0, -1.1])
+    for linear, expected in ((g1, True), (unstable, False)):
+        doc = IdentificationResult("ls-arx", linear, linear.simulate).to_json()
+        assert doc["stable"] is expected
