@@ -40,6 +40,7 @@ MAX_EXTRA_ORDER = 4
 MAX_ORDER = 8
 SLOW_FIT_SAMPLES = 2000  # the sample-by-sample feedback loop is refined on at most this many samples
 OUTPUT_MAP_BREAKPOINTS = 6
+PATH_ORDER = 2  # order of the parallel path
 IMPULSE_LENGTH = 400
 FEEDBACK_BREAKPOINTS = 5
 
@@ -139,18 +140,24 @@ def _extra_modes(count: int) -> list[np.ndarray]:
 # --------------------------------------------------------------------------- backlash
 
 
+def _same_levels(v: np.ndarray, knots: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Breakpoints for a signal z derived from v: the quantiles of z at the levels (empirical
+    CDF of v) where the baseline's breakpoints sit, so that the map keeps its layout."""
+    levels = np.clip(np.mean(np.asarray(v)[:, None] <= np.asarray(knots)[None, :], axis=0), 0.0, 1.0)
+    return drop_empty_intervals(z, np.unique(np.quantile(z, levels)))
+
+
 def extend_backlash(ctx: Context) -> ExtendedModel | None:
     """y = G[F(P_w(v))]: the play width w from a grid and a bounded scalar search on the
     simulation error with G fixed at the baseline's (F re-fitted by least squares for each w),
     then the Hammerstein model on P_w(v) refined as the baseline is."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
-    count = base.partition.size
 
     def cost(width: float) -> float:
         z = play_operator(v, width)
         try:
-            partition = quantile_partition(z, count)
+            partition = _same_levels(v, base.partition, z)
         except IdentificationError:
             return np.inf
         columns = np.column_stack([point_slope_basis(z, partition, max(1, partition.size // 2)), np.ones(z.size)])
@@ -168,7 +175,7 @@ def extend_backlash(ctx: Context) -> ExtendedModel | None:
     found = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.01 * scale, "maxiter": 12})
     width = float(found.x) if found.fun < costs[i] else float(grid[i])
     z = play_operator(v, width)
-    model = fit_hammerstein(z, y, base.order, base.delay, quantile_partition(z, count))
+    model = fit_hammerstein(z, y, base.order, base.delay, _same_levels(v, base.partition, z))
 
     def simulate(u: np.ndarray) -> np.ndarray:
         return model.simulate(play_operator(u, width))
@@ -304,6 +311,34 @@ def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int) -> tu
     return b, stabilised_denominator(np.concatenate([[1.0], a]))
 
 
+@dataclass(frozen=True, eq=False)
+class Feedforward:
+    """y = G1[F(v)] + G2[v]: the Hammerstein branch and the linear path (b2, a2)."""
+
+    branch: HammersteinModel
+    b2: np.ndarray
+    a2: np.ndarray
+
+    def simulate(self, v: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+        m = self.branch
+        branch = steady_state_filter(m.b, m.a, (m.basis(v) if basis is None else basis) @ m.slopes + m.kappa)
+        return branch + steady_state_filter(self.b2, self.a2, v)
+
+
+def _refine_feedforward(start: Feedforward, v: np.ndarray, y: np.ndarray, eta: np.ndarray, skip: int) -> Feedforward:
+    """The feedforward model minimising the simulation error from ``start`` (the branch's
+    largest numerator coefficient fixed, as in the baseline)."""
+    params = HammersteinParameters(start.branch)
+    size, order = params.size, start.a2.size - 1
+
+    def unpack(theta: np.ndarray) -> Feedforward:
+        return Feedforward(params.unpack(theta[:size]), theta[size + order :],
+                           np.concatenate([[1.0], theta[size : size + order]]))
+
+    theta0 = np.concatenate([params.pack(start.branch), start.a2[1:], start.b2])
+    return unpack(refine(lambda t: unpack(t).simulate(v, eta), theta0, y, 40, skip))
+
+
 def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
     """Feedforward system y = G1[F(v)] + G2[v] (paper 003 sec. 3, Fig. 3): started from the
     baseline plus a second-order path fitted to its residual, from the common-denominator
@@ -313,60 +348,36 @@ def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
     the start with the smallest simulation error after refinement wins."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
-    params = HammersteinParameters(base)
-    size = params.size
-    path_order = 2
-
-    def unpack(theta: np.ndarray):
-        m = params.unpack(theta[:size])
-        a2 = np.concatenate([[1.0], theta[size : size + path_order]])
-        return m, theta[size + path_order :], a2
-
-    def simulate_with(theta: np.ndarray, u: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
-        m, b2, a2 = unpack(theta)
-        branch = steady_state_filter(m.b, m.a, (m.basis(u) if basis is None else basis) @ m.slopes + m.kappa)
-        return branch + steady_state_filter(b2, a2, u)
-
     eta = base.basis(v)
-    starts = []
-    residual = y - base.simulate(v)
-    b2, a2 = _linear_fit(v, residual, path_order, 0)
-    starts.append(np.concatenate([params.pack(base), a2[1:], b2]))
-    for start in (_common_denominator_start(ctx, params, path_order),
-                  _billings_fakhouri_start(ctx, params, path_order)):
-        if start is not None:
-            starts.append(start)
-
-    best, best_cost = None, np.inf
-    for theta0 in starts:
-        theta = refine(lambda t: simulate_with(t, v, eta), theta0, y, 40, skip)
-        c = float(np.sum((y - simulate_with(theta, v, eta))[skip:] ** 2))
-        if c < best_cost:
-            best, best_cost = theta, c
-    model, b2, a2 = unpack(best)
-    path = LinearModel(b2, a2)
-
-    def simulate(u: np.ndarray) -> np.ndarray:
-        return simulate_with(best, u)
-
-    details = {"branch": _order_details(model), "parallel_path": {
+    b2, a2 = _linear_fit(v, y - base.simulate(v), PATH_ORDER, 0)
+    starts = [Feedforward(base, b2, a2), _common_denominator_start(ctx), _billings_fakhouri_start(ctx)]
+    fits = [_refine_feedforward(start, v, y, eta, skip) for start in starts if start is not None]
+    costs = [float(np.sum((y - f.simulate(v, eta))[skip:] ** 2)) for f in fits]
+    best = fits[int(np.nanargmin(costs))]
+    path = LinearModel(best.b2, best.a2)
+    details = {"branch": _order_details(best.branch), "parallel_path": {
         "b": path.b.tolist(), "a": path.a[1:].tolist(), "poles": [[float(p.real), float(p.imag)] for p in path.poles]}}
-    maps = (map_plot("F (Hammerstein branch)", model.static, v),)
-    return ExtendedModel("parallel_path", "feedforward (hammerstein + linear path)", s.validation_output(simulate),
-                         details, maps)
+    maps = (map_plot("F (Hammerstein branch)", best.branch.static, v),)
+    return ExtendedModel("parallel_path", "feedforward (hammerstein + linear path)",
+                         s.validation_output(best.simulate), details, maps)
 
 
-def _common_denominator_start(ctx: Context, params: HammersteinParameters, path_order: int) -> np.ndarray | None:
+def _impulse_fit(numerator: np.ndarray, denominator: np.ndarray, order: int,
+                 delay: int) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of the given order fitted to the impulse response of numerator/denominator."""
+    impulse = np.eye(1, IMPULSE_LENGTH, 0)[0]
+    return _linear_fit(impulse, signal.lfilter(numerator, denominator, impulse), order, delay)
+
+
+def _common_denominator_start(ctx: Context) -> Feedforward | None:
     """A start from one least-squares solve: y = [B(q) F(v) + C(q) v] / A(q) with A of order
-    n + path_order (both paths' poles), i.e. PLLS (paper 001 eq. 23) with the input itself as
+    n + PATH_ORDER (both paths' poles), i.e. PLLS (paper 001 eq. 23) with the input itself as
     one more channel; B F by rank one (eqs. 35-38); then G1 (order n) and G2 (order
-    path_order) fitted to the impulse responses of B/A and C/A."""
+    PATH_ORDER) fitted to the impulse responses of B/A and C/A."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
-    order = base.order + path_order
-    channels = np.column_stack([base.basis(v), v])
     try:
-        reg = build_regression(y, channels, order, 0)
+        reg = build_regression(y, np.column_stack([base.basis(v), v]), base.order + PATH_ORDER, 0)
     except ValueError:
         return None
     theta = solve_least_squares(np.column_stack([reg.phi, np.ones(reg.rows.size)])[skip:], reg.target[skip:])
@@ -375,41 +386,31 @@ def _common_denominator_start(ctx: Context, params: HammersteinParameters, path_
     if not np.all(np.isfinite(b)) or abs(np.sum(b)) < 1e-12:
         return None
     den = stabilised_denominator(np.concatenate([[1.0], a]))
-    impulse = np.eye(1, IMPULSE_LENGTH, 0)[0]
-    b1, a1 = _linear_fit(impulse, signal.lfilter(b, den, impulse), base.order, base.delay)
-    b2, a2 = _linear_fit(impulse, signal.lfilter(coefficients[:, -1], den, impulse), path_order, 0)
-    model = replace(base, a=a1, b=np.pad(b1, (0, max(0, base.b.size - b1.size)))[: base.b.size], slopes=mu,
-                    kappa=float(theta[-1] / np.sum(b)))
-    packed = params.pack_rescaled(model)
-    return None if packed is None else np.concatenate([packed, a2[1:], b2])
+    b1, a1 = _impulse_fit(b, den, base.order, base.delay)
+    b2, a2 = _impulse_fit(coefficients[:, -1], den, PATH_ORDER, 0)
+    branch = replace(base, a=a1, b=b1[: base.b.size], slopes=mu, kappa=float(theta[-1] / np.sum(b)))
+    return Feedforward(branch, b2, a2) if np.any(branch.b) else None
 
 
-def _billings_fakhouri_start(ctx: Context, params: HammersteinParameters, path_order: int) -> np.ndarray | None:
-    """The Billings-Fakhouri feedforward estimate in this module's parameters: its branch
-    polynomial projected on the baseline's piecewise-linear basis, its parallel path
-    re-fitted at ``path_order``."""
+def _billings_fakhouri_start(ctx: Context) -> Feedforward | None:
+    """The Billings-Fakhouri feedforward estimate (paper 003 sec. 3) on this module's
+    structure: its branch polynomial projected on the baseline's piecewise-linear basis, its
+    parallel path re-fitted at PATH_ORDER."""
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     try:
         fit = identify_feedforward(v, y, base.order, max(base.delay, 1), poly=3)
     except (IdentificationError, np.linalg.LinAlgError, ValueError):
         return None
-    if not (fit.branch.is_stable() and fit.parallel_path.is_stable()):
+    if not (fit.branch.is_stable() and fit.parallel_path.is_stable()) or fit.branch.a.size != base.a.size:
         return None
-    branch_input = fit.nonlinearity(v)
-    basis = np.column_stack([base.basis(v), np.ones(v.size)])
-    coefficients = solve_least_squares(basis, branch_input)
+    coefficients = solve_least_squares(np.column_stack([base.basis(v), np.ones(v.size)]), fit.nonlinearity(v))
     b = np.zeros_like(base.b)
     b[: min(b.size, fit.branch.b.size)] = fit.branch.b[: b.size]
-    if fit.branch.a.size != base.a.size:
-        return None
-    packed = params.pack_rescaled(replace(base, a=stabilised_denominator(fit.branch.a), b=b,
-                                          slopes=coefficients[:-1], kappa=float(coefficients[-1])))
-    if packed is None:
-        return None
-    path = fit.parallel_path.simulate(np.eye(1, 200, 0)[0])
-    b2, a2 = _linear_fit(np.eye(1, 200, 0)[0], path, path_order, 0)
-    return np.concatenate([packed, a2[1:], b2])
+    branch = replace(base, a=stabilised_denominator(fit.branch.a), b=b, slopes=coefficients[:-1],
+                     kappa=float(coefficients[-1]))
+    b2, a2 = _impulse_fit(fit.parallel_path.b, fit.parallel_path.a, PATH_ORDER, 0)
+    return Feedforward(branch, b2, a2) if np.any(b) else None
 
 
 # --------------------------------------------------------------------------- time-varying
@@ -432,13 +433,14 @@ def extend_time_varying(ctx: Context) -> ExtendedModel | None:
         return None
     block = max(window // 4, 10)
     u_all = base.static(v_all)
-    out = np.empty(n_val)
+    out = s.validation_output(base.simulate)  # kept until a first window of measured data exists
     model = base
     history_y = base.simulate(v_all[:start]) if start else np.zeros(0)
     for k0 in range(start, start + n_val, block):
+        if k0 - window < 0:
+            continue
         k1 = min(k0 + block, start + n_val)
-        if k0 - window >= 0:
-            model = _refit_window(model, base, u_all[k0 - window : k0], y_all[k0 - window : k0])
+        model = _refit_window(model, base, u_all[k0 - window : k0], y_all[k0 - window : k0])
         y_past = np.concatenate([history_y, out[: k0 - start]])
         out[k0 - start : k1 - start] = _continue(model, u_all + (model.kappa - base.kappa), y_past, k0, k1)
     details = {"window": window, "block": block}
@@ -513,7 +515,7 @@ def extend_periodic_disturbance(ctx: Context) -> ExtendedModel | None:
         k_val = np.arange(s.n_est, s.n_est + s.v_val.size)
         output = s.validation_output(model.simulate) + waves(freqs, k_val) @ amps
     else:
-        x_val = model.simulate(s.v_val)
+        x_val = s.validation_output(model.simulate)
         basis = waves(freqs, np.arange(s.v_val.size))
         output = x_val + basis @ solve_least_squares(basis, s.y_val - x_val)
     amplitudes = np.hypot(amps[0::2], amps[1::2])

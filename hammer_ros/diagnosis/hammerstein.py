@@ -92,17 +92,6 @@ class HammersteinParameters:
         knots = model.partition if self.free_knots else []
         return np.concatenate([model.a[1:], model.b[self.free_b], model.slopes, [model.kappa], knots])
 
-    def pack_rescaled(self, model: HammersteinModel) -> np.ndarray | None:
-        """theta of ``model`` (same order, partition and primary index) after moving the scale
-        between G and F so that its fixed coefficient equals the template's; None if it has
-        a different structure or a zero there."""
-        t = self.template
-        if (model.a.size != t.a.size or model.b.size != t.b.size or model.primary != t.primary
-                or model.partition.size != t.partition.size or abs(model.b[self.fixed]) < 1e-12):
-            return None
-        c = t.b[self.fixed] / model.b[self.fixed]
-        return self.pack(replace(model, b=model.b * c, slopes=model.slopes / c, kappa=model.kappa / c))
-
     def unpack(self, theta: np.ndarray) -> HammersteinModel:
         n, nb, ns = self.template.order, self.free_b.size, self.template.slopes.size
         b = self.template.b.copy()
