@@ -16,6 +16,7 @@ the sample rate, anchored on the least delayed receive times (``sample_clock.Arr
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import sys
@@ -118,6 +119,8 @@ PARAMETERS: dict[str, Spec] = {
                            "models (below: 'not persistently exciting', the last model stays, marked stale); 0 = off",
                            0.0, 1.0),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
+    "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
+                             "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
     "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
     "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
@@ -127,6 +130,7 @@ PARAMETERS: dict[str, Spec] = {
 }
 ENGINE_FIELDS = {f.name for f in fields(EngineConfig)} & set(PARAMETERS)
 STREAM_PARAMETERS = {f"{s}_{k}": s for s in STREAMS for k in ("topic", "type", "field")}
+DIAGNOSIS_TYPE = "std_msgs/msg/String"
 
 
 def message_class(type_name: str):
@@ -255,6 +259,8 @@ class IdentificationNode(Node):
             qos = latched if topic == "~/model" else 10
             self._outputs[topic] = (self.create_publisher(output_message_class(type_name), topic, qos), type_name)
 
+        self._diagnosis_publisher = self.create_publisher(output_message_class(DIAGNOSIS_TYPE), "~/diagnosis", latched)
+
         self.inputs = {s: _Input(s) for s in STREAMS}
         for stream in STREAMS:
             self._subscribe(stream)
@@ -268,7 +274,8 @@ class IdentificationNode(Node):
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._workers = [threading.Thread(target=self._ingest_loop, name="hammer_ros_ingest", daemon=True),
-                         threading.Thread(target=self._solve_loop, name="hammer_ros_solver", daemon=True)]
+                         threading.Thread(target=self._solve_loop, name="hammer_ros_solver", daemon=True),
+                         threading.Thread(target=self._diagnosis_loop, name="hammer_ros_diagnosis", daemon=True)]
         for worker in self._workers:
             worker.start()
         self.get_logger().info(
@@ -451,6 +458,31 @@ class IdentificationNode(Node):
         self._publish(outcome, stats, publish)
         return outcome
 
+    def _diagnosis_loop(self) -> None:
+        """Every ``diagnosis_period`` s: ``diagnose_record`` on the current raw window (estimation
+        on its first 70 %, validation on the rest), published as JSON on ~/diagnosis."""
+        while not self._stop.wait(self.values["diagnosis_period"] or 1.0):
+            if self.values["diagnosis_period"] > 0:
+                self._guarded(self._diagnose_once, "diagnosing")
+
+    def _diagnose_once(self) -> None:
+        from .diagnosis.diagnose import diagnose_record  # imported on first use: matplotlib-free, but heavy
+
+        with self._lock:
+            snapshot = self.engine.snapshot()
+        started = time.perf_counter()
+        doc: dict[str, Any] = {"samples": int(snapshot.v.size), "stamp": snapshot.stamp}
+        try:
+            with np.errstate(all="ignore"):
+                doc |= diagnose_record(snapshot.v, snapshot.y, order=self.values["order"]).to_json()
+        except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
+            doc["error"] = f"window not diagnosable: {exc}"
+        doc["seconds"] = time.perf_counter() - started
+        values = {"data": json.dumps(_finite_json(doc), allow_nan=False)}
+        self._record([("~/diagnosis", DIAGNOSIS_TYPE, values)], self.get_clock().now().nanoseconds * 1e-9)
+        if not self._stop.is_set():
+            self._diagnosis_publisher.publish(to_ros_message(DIAGNOSIS_TYPE, values))
+
     def _publish(self, outcome: SolveOutcome, stats, publish: bool = True) -> None:
         """Publish (and record in output_mcap, first) the results of a solve; after a solve without
         a model, the last good model again, marked stale."""
@@ -544,6 +576,21 @@ class IdentificationNode(Node):
         self._wake.set()
         for worker in self._workers:
             worker.join(timeout=1.0)
+
+
+def _finite_json(value: Any) -> Any:
+    """A copy with NaN/inf as null and numpy scalars/arrays as Python values (strict JSON)."""
+    if isinstance(value, dict):
+        return {str(k): _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_finite_json(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
 
 
 def _normal_type(name: str) -> str:

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.ros
 
 RATE = 500.0
 PLANT = {"rate": RATE, "nonlinearity": "dead_zone", "threshold": 0.2, "amplitude": 0.5, "noise": 0.002, "seed": 7}
-NODE = {"sample_rate": RATE, "order": 3, "delay": 2, "window": 4000, "solve_rate": 4.0}
+NODE = {"sample_rate": RATE, "order": 3, "delay": 2, "window": 4000, "solve_rate": 4.0, "diagnosis_period": 5.0}
 POLE_TOLERANCE = 0.02  # RSS, the issue's acceptance bound
 
 
@@ -39,6 +39,7 @@ def live(tmp_path_factory):
         listener.truth = listener.subscribe_json("/plant/truth")
         listener.models = listener.subscribe_json("/hammer_ros/model")
         listener.diagnostics = listener.subscribe_diagnostics()
+        listener.diagnoses = listener.subscribe_json("/hammer_ros/diagnosis")
         listener.env = env
         try:
             yield listener
@@ -84,6 +85,17 @@ def test_model_poles_converge_to_the_plant(live):
     assert diagnostics["message"] == "model identified"
     assert float(diagnostics["received_rate_excitation_hz"]) == pytest.approx(RATE, rel=0.05)
     assert int(diagnostics["excitation_field_errors"]) == 0 and int(diagnostics["response_field_errors"]) == 0
+
+
+def test_diagnosis_of_the_window_is_published(live):
+    """~/diagnosis: the plant is a clean Hammerstein system (dead zone, linear block, small
+    noise), so once the window is full its diagnosis must find nothing missing."""
+    full = live.wait_for(lambda: [d for d in live.diagnoses if d.get("samples") == NODE["window"]],
+                         timeout=60, what="a diagnosis of a full window")[-1]
+    assert full["cause"] == "none", full
+    assert full["extended"] is None and full["gain"] is None
+    assert full["baseline"]["fit_percent"] > 80
+    assert {"test", "value", "bound", "passed"} <= set(full["evidence"][0])
 
 
 def test_window_change_applies_live(live):
