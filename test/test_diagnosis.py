@@ -181,3 +181,38 @@ def test_cascaded_tanks_beats_the_best_linear_approximation():
     assert d.baseline.rms < 0.75
     if d.gain is not None:
         assert d.extended.rms < d.baseline.rms
+
+
+def _dead_time_record(dead_time: int, seed: int, sensor=None):
+    """Order 2 with a zero, relative degree 1, then ``dead_time`` samples of transport delay;
+    a saturation ahead of it; 1 % output noise; 4000 samples."""
+    from hammer_ros.linear import LinearModel
+
+    rng = np.random.default_rng(seed)
+    g = LinearModel.from_zeros_poles([0.5], [0.8 + 0.3j, 0.8 - 0.3j], dc_gain=1.5)
+    v = rng.standard_normal(4000 + dead_time)
+    x = g.simulate(np.clip(v, -0.8, 1.2))[: 4000]  # y(k) = G[F(v)](k - dead_time)
+    v = v[dead_time:]
+    y = x if sensor is None else sensor(x)
+    return v, y + 0.01 * np.std(y) * rng.standard_normal(y.size)
+
+
+@pytest.mark.parametrize("dead_time", [0, 2, 5])
+def test_input_delay_finds_the_first_lag_that_matters(dead_time):
+    from hammer_ros.diagnosis.hammerstein import input_delay
+
+    v, y = _dead_time_record(dead_time, 3)
+    assert input_delay(v, y, order=2) == dead_time + 1
+
+
+def test_a_dead_time_beyond_the_order_is_not_taken_for_missing_dynamics():
+    """A clean Hammerstein plant whose transport delay (4 samples) exceeds what order 2 holds as
+    a relative degree: the baseline moves the dead time into the input and finds nothing
+    missing; with a sensor clip as well, the clip is still named."""
+    v, y = _dead_time_record(4, 5)
+    d = diagnose_record(v, y, order=2)
+    assert d.cause == "none", d.candidates
+    assert d.baseline_model["dead_time"] == 4 and d.baseline.fit_percent > 95
+    clipped_v, clipped_y = _dead_time_record(4, 6, sensor=lambda x: np.minimum(x, np.quantile(x, 0.8)))
+    clipped = diagnose_record(clipped_v, clipped_y, order=2)
+    assert clipped.cause == "output_nonlinearity" and clipped.gain >= 1.15, clipped.candidates

@@ -32,7 +32,7 @@ from .evidence import (
     windowed_variation,
 )
 from .extensions import EXTENSIONS, Context, ExtendedModel
-from .hammerstein import HammersteinModel, fit_baseline, transient_samples
+from .hammerstein import HammersteinModel, fit_baseline, select_dead_time, transient_samples
 from .residual_tests import CorrelationTest, Evidence, residual_tests
 from .split import Split, split_record
 
@@ -117,7 +117,10 @@ def _score(structure: str, y: np.ndarray, y_sim: np.ndarray) -> ModelScore:
 
 def diagnose(split: Split, order: int | None = None, delay: int | None = None) -> DiagnosisRun:
     """The diagnosis of the record in ``split`` (``order``: the user's nominal order; None =
-    chosen on the estimation data)."""
+    chosen on the estimation data). Without a given ``delay`` a dead time is searched first
+    (``select_dead_time``) and moved into the input of every model."""
+    dead_time = 0 if delay is not None else select_dead_time(split.v_est, split.y_est, order)
+    split = split.delayed_input(dead_time)
     base = fit_baseline(split.v_est, split.y_est, order, delay)
     skip = transient_samples(base.linear.poles, split.n_est)
     x_est = base.simulate(split.v_est)
@@ -163,7 +166,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         gain=None if cause == "none" else gains[cause],
         candidates=tuple(sorted(gains.items(), key=lambda kv: -kv[1])),
         details={} if cause == "none" else extensions[cause].details,
-        baseline_model={"order": base.order, "delay": base.delay,
+        baseline_model={"order": base.order, "delay": base.delay, "dead_time": dead_time,
                         "poles": [[float(p.real), float(p.imag)] for p in base.linear.poles],
                         "nonlinearity": base.nonlinearity.to_json((float(np.min(split.v_est)),
                                                                     float(np.max(split.v_est))))},

@@ -48,12 +48,30 @@ class Split:
             return simulate(self.v_all)[self.n_est :]
         return from_rest_at(simulate, self.v_val, float(np.mean(self.y_val[:INITIAL_SAMPLES])), self.v_est)
 
+    def delayed_input(self, samples: int) -> Split:
+        """The same split with the input delayed by ``samples`` (a dead time moved into the
+        data): over the whole record when continuous, else each record on its own."""
+        if samples <= 0:
+            return self
+        if self.continuous:
+            v = delayed(self.v_all, samples)
+            return Split(v[: self.n_est], self.y_est, v[self.n_est :], self.y_val, True)
+        return Split(delayed(self.v_est, samples), self.y_est, delayed(self.v_val, samples), self.y_val, False)
+
     def estimation_tail(self, samples: int) -> Split:
         """The same split with only the last ``samples`` estimation samples (to bound the cost
         of slow fits on long records); validation unchanged."""
         if samples >= self.n_est:
             return self
         return Split(self.v_est[-samples:], self.y_est[-samples:], self.v_val, self.y_val, self.continuous)
+
+
+def delayed(v: np.ndarray, samples: int) -> np.ndarray:
+    """v(k - samples), the first ``samples`` values held at v(0) (the record's past unknown)."""
+    v = np.asarray(v, dtype=float)
+    if samples <= 0:
+        return v
+    return np.concatenate([np.full(min(samples, v.size), v[0]), v[: max(v.size - samples, 0)]])
 
 
 def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0: float,
