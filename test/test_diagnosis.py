@@ -205,14 +205,16 @@ def test_input_delay_finds_the_first_lag_that_matters(dead_time):
     assert input_delay(v, y, order=2) == dead_time + 1
 
 
-def test_a_dead_time_beyond_the_order_is_not_taken_for_missing_dynamics():
-    """A clean Hammerstein plant whose transport delay (4 samples) exceeds what order 2 holds as
-    a relative degree: the baseline moves the dead time into the input and finds nothing
+@pytest.mark.parametrize("dead_time", [1, 4])
+def test_a_dead_time_is_not_taken_for_missing_dynamics(dead_time):
+    """A clean Hammerstein plant with a zero and a transport delay: 4 samples exceed what order 2
+    holds as a relative degree; 1 sample fits as relative degree 2, but then the numerator
+    cannot hold the zero. The baseline moves the dead time into the input and finds nothing
     missing; with a sensor clip as well, the clip is still named."""
-    v, y = _dead_time_record(4, 5)
+    v, y = _dead_time_record(dead_time, 5)
     d = diagnose_record(v, y, order=2)
     assert d.cause == "none", d.candidates
-    assert d.baseline_model["dead_time"] == 4 and d.baseline.fit_percent > 95
-    clipped_v, clipped_y = _dead_time_record(4, 6, sensor=lambda x: np.minimum(x, np.quantile(x, 0.8)))
+    assert d.baseline_model["dead_time"] == dead_time and d.baseline.fit_percent > 95
+    clipped_v, clipped_y = _dead_time_record(dead_time, 6, sensor=lambda x: np.minimum(x, np.quantile(x, 0.8)))
     clipped = diagnose_record(clipped_v, clipped_y, order=2)
     assert clipped.cause == "output_nonlinearity" and clipped.gain >= 1.15, clipped.candidates
