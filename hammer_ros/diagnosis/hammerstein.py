@@ -301,6 +301,8 @@ def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None) -> int:
     alone, or a 10 % margin, prefers a shift on short noisy records too often: measured on
     the generated cases, it cost more than it mended.)"""
     n = order or MAX_ORDER_SEARCH
+    tail = slice(max(0, v.size - SELECTION_SAMPLES), None)  # chosen on the last samples, like the order
+    v, y = np.asarray(v, dtype=float)[tail], np.asarray(y, dtype=float)[tail]
     total = input_delay(v, y, n)
     if total is None or total <= 1:
         return 0
