@@ -54,7 +54,9 @@ def run(args: argparse.Namespace) -> int:
 def summary(d: Diagnosis) -> str:
     """The diagnosis in a few lines for a terminal."""
     b = d.baseline
-    lines = [f"baseline  {b.structure}: validation rms {b.rms:.4g}, fit {b.fit_percent:.1f} %",
+    dead_time = d.baseline_model.get("dead_time", 0)
+    lines = [f"baseline  {b.structure}: validation rms {b.rms:.4g}, fit {b.fit_percent:.1f} %"
+             + (f", input dead time {dead_time} samples" if dead_time else ""),
              f"cause     {d.cause} (confidence {d.confidence:.2f}): {MEANING[d.cause]}"]
     if d.extended is not None:
         e = d.extended
