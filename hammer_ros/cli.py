@@ -69,7 +69,9 @@ def add_identify_options(p: argparse.ArgumentParser, default_method: str = "cls-
     p.add_argument("--delay", type=_positive_int, default=1, help="relative degree d (default 1)")
     p.add_argument("--mu", type=_positive_int, default=None, help="number of Markov parameters (mu-Markov)")
     p.add_argument("--poly", type=_positive_int, default=3, help="polynomial order p of the nonlinearity (default 3)")
-    p.add_argument("--partition", type=_partition, default=None, help="PLLS breakpoints c1,c2,...")
+    p.add_argument("--partition", type=_partition, default=None,
+                   help="breakpoints c1,c2,... of the piecewise-linear map (PLLS; for cls-arx/cls-markov: "
+                   "a piecewise-linear F instead of the polynomial)")
     p.add_argument("--feedback-partition", type=_partition, default=None,
                    help="plls-hammerstein-feedback: breakpoints d1,d2,... of the output feedback map")
     p.add_argument("--tau-max", type=_positive_int, default=None, help="largest correlation lag (CLS)")
@@ -79,7 +81,7 @@ def add_identify_options(p: argparse.ArgumentParser, default_method: str = "cls-
 # option -> the methods that use it (given with any other method it would be silently ignored)
 OPTION_METHODS = {
     "--mu": ("cls-markov", "nls-markov", "ls-markov"),
-    "--partition": ("plls-hammerstein", "plls-feedback", "plls-hammerstein-feedback"),
+    "--partition": ("plls-hammerstein", "plls-feedback", "plls-hammerstein-feedback", "cls-arx", "cls-markov"),
     "--feedback-partition": ("plls-hammerstein-feedback",),
     "--harmonic": ("semiparametric",),
     "--tau-max": ("cls-arx", "cls-markov", "bf-hammerstein", "bf-feedforward"),

@@ -37,10 +37,11 @@ from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .errors import IdentificationError
 from .linear import LinearModel
+from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
 from .regression import fit_regression, markov_lags, polynomial_basis, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
-from .static_maps import PolynomialMap
+from .static_maps import PiecewiseLinearMap, PolynomialMap
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -72,10 +73,11 @@ class LinearEstimate:
 @dataclass(frozen=True, eq=False)
 class HammersteinEstimate:
     """y = G(q) F[v] with F a polynomial (ascending coefficients from v^0) of unit slope
-    gamma_1 = 1, so that ``linear.first_markov`` is the paper's gain figure h_d_hat."""
+    gamma_1 = 1, so that ``linear.first_markov`` is the paper's gain figure h_d_hat (or a
+    piecewise-linear F of unit Bussgang gain, ``piecewise_linear_step``)."""
 
     linear: LinearEstimate
-    nonlinearity: PolynomialMap | None
+    nonlinearity: PolynomialMap | PiecewiseLinearMap | None
 
 
 def _check_record(v: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,7 +147,8 @@ def correlation_functions(v: np.ndarray, y: np.ndarray, tau_max: int) -> tuple[n
 
 
 def gain_correction(
-    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, poly: int
+    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, poly: int = 3,
+    basis: np.ndarray | None = None,
 ) -> np.ndarray:
     """CLS step 2 (paper 000 sec. 3.1): gamma_1 .. gamma_p of
 
@@ -159,13 +162,19 @@ def gain_correction(
 
     Offsets (an extension of the paper, which assumes a zero-mean input): a constant gamma_0
     is estimated with gamma_1..gamma_p, so a command with a non-zero mean or a sensor offset
-    does not bias F; the returned array is gamma_0..gamma_p."""
+    does not bias F; the returned array is gamma_0..gamma_p.
+
+    ``basis`` (N x q, its first column the constant) replaces the monomials 1, v, ..., v^p:
+    the paper's step 2 is linear in any basis functions of v, e.g. the point-slope basis of
+    paper 001 (``piecewise_linear_step``)."""
     try:
         output_lags, input_lags = markov_lags(order, delay, step1.mu)
     except ValueError as exc:
         raise IdentificationError(f"CLS step 2: {exc}") from None
     first = int(max(output_lags.max(), input_lags.max()))
-    if v.size <= first + poly:
+    if basis is None:
+        basis = polynomial_basis(v, poly, constant=True)
+    if v.size <= first + basis.shape[1]:
         raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
     denominator = np.zeros(first + 1)
     denominator[0] = 1.0
@@ -173,7 +182,7 @@ def gain_correction(
     numerator = np.zeros(first + 1)
     numerator[input_lags] = step1.numerator
     target = signal.lfilter(denominator, [1.0], y)[first:]
-    regressors = signal.lfilter(numerator, [1.0], polynomial_basis(v, poly, constant=True), axis=0)[first:]
+    regressors = signal.lfilter(numerator, [1.0], basis, axis=0)[first:]
     return solve_least_squares(regressors, target)
 
 
@@ -190,7 +199,7 @@ def correlation_least_squares(
 
 def correlation_least_squares_steps(
     phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1,
-    poly: int = 3,
+    poly: int = 3, partition: np.ndarray | None = None,
 ) -> HammersteinEstimate:
     """CLS steps 1 and 2 (paper 000 sec. 3.1) from given correlation functions (indexed by
     tau + tau_max, e.g. the streaming engine's window sums) and the raw record for step 2.
@@ -212,17 +221,45 @@ def correlation_least_squares_steps(
     input N(m, s^2) gives raw correlations phi_vv + m^2 and phi_yv + m E{y}, so the intercept
     reproduces the centred-signal estimate (Bussgang/Nuttall holds for v - m) while the
     estimator stays the paper's eq. (8) - which the streaming engine updates recursively.
+
+    With ``partition`` F is piecewise linear on those breakpoints instead (``piecewise_linear_step``).
     """
     v, y = _check_record(v, y)
     phi_vv, phi_yv = _check_record(phi_vv, phi_yv)
     _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu, intercept=True)
     step1 = linear_estimate(a, coefficients[:, 0], order, delay, mu)
+    if partition is not None:
+        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float))
     gamma = gain_correction(v, y, step1, order, delay, poly)
     slope = float(np.polynomial.polynomial.polyval(np.mean(v), np.polynomial.polynomial.polyder(gamma)))
     if abs(slope) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
         raise IdentificationError("CLS step 2: F has zero slope at the input mean; the linear block's gain is "
                                   "not identifiable")
     return HammersteinEstimate(step1.scaled(slope), PolynomialMap(gamma / slope))
+
+
+def piecewise_linear_step(
+    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, partition: np.ndarray
+) -> HammersteinEstimate:
+    """CLS step 2 with a piecewise-linear F (an extension: paper 000's step 2 in the
+    point-slope basis of paper 001, eqs. 8-11): F(v) = eta(v)^T m + kappa on ``partition``
+    by least squares given the step-1 (A_hat, B_hat) (``gain_correction``). Step 1 needs no
+    assumption on F (Lemma 2), so the poles and zeros are those of the polynomial variant,
+    while F may have the corners of a dead zone, a saturation or a relay. F is normalised to
+    unit Bussgang gain cov(F(v), v) / var(v) (its slope at the operating point may be zero,
+    e.g. inside a dead zone), B = s B_hat accordingly."""
+    check_partition(v, partition, "input")
+    primary = default_primary_index(partition)
+    eta = point_slope_basis(v, partition, primary)
+    theta = gain_correction(v, y, step1, order, delay, basis=np.column_stack([np.ones(v.size), eta]))
+    f = eta @ theta[1:] + theta[0]
+    centred = v - v.mean()
+    scale = float(centred @ (f - f.mean()) / (centred @ centred))
+    if abs(scale) < 1e-12 * max(1.0, float(np.max(np.abs(theta)))):
+        raise IdentificationError("CLS step 2: F is uncorrelated with the input; the linear block's gain is "
+                                  "not identifiable")
+    return HammersteinEstimate(step1.scaled(scale), point_slope_map(partition, primary, theta[1:] / scale,
+                                                                     float(theta[0] / scale)))
 
 
 # --- Bai's two-stage nonlinear least squares (sec. 3.2) --------------------------------------
@@ -281,7 +318,8 @@ def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict)
 
 def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
     """``cls-arx`` / ``cls-markov``: CLS with the options' order, delay, mu (default 30),
-    tau_max (default ``default_tau_max``) and poly."""
+    tau_max (default ``default_tau_max``) and poly, or a piecewise-linear F on the options'
+    partition when it is given (``piecewise_linear_step``)."""
     mu = _mu(structure, options.mu)
     tau_max = default_tau_max(options.order, mu) if options.tau_max is None else options.tau_max
     phi_vv, phi_yv = correlation_functions(v, y, tau_max)
@@ -294,7 +332,8 @@ def cls_from_correlations(
     """``identify_cls`` on given correlation functions (tau_max = (len - 1) / 2), e.g. the
     streaming engine's window sums; (v, y) is the raw window for step 2."""
     mu = _mu(structure, options.mu)
-    estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly)
+    estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
+                                               options.partition)
     extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
     return _result(f"cls-{structure}", estimate, options.order, extra)
 

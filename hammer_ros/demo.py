@@ -5,8 +5,8 @@ Starts two processes on an exclusive ROS_DOMAIN_ID, DDS on loopback only:
 - ``hammer_ros.plant_node``: u = white Gaussian noise (std 0.5) at 500 Hz through a dead zone
   (half-width 0.2) and the resonant third-order block ``plant_node.DEMO_PLANT``, published as
   std_msgs/Float64 on /command and /response, the truth on /plant/truth;
-- ``hammer_ros.node``: the identification node (cls-markov, order 3, relative degree 2,
-  window 4000 samples, 2 solves/s),
+- ``hammer_ros.node``: the identification node (cls-markov, order 3, relative degree 2, a
+  piecewise-linear F on 8 equally spaced breakpoints, window 4000 samples, 2 solves/s),
 
 then listens to /plant/truth, /hammer_ros/model and /diagnostics and prints, every two seconds,
 how far the latest model is from the truth: the RSS error of the poles and of the zeros (paper 000
@@ -35,7 +35,10 @@ from .ros_env import DomainLease, child_environment
 
 RATE = 500.0
 PLANT_PARAMETERS = {"rate": RATE, "nonlinearity": "dead_zone", "threshold": 0.2, "amplitude": 0.5, "noise": 0.002}
-NODE_PARAMETERS = {"sample_rate": RATE, "method": "cls-markov", "order": 3, "delay": 2, "poly": 3,
+# F piecewise linear on equally spaced breakpoints (not at the dead zone's corners): CLS step 2 in
+# the point-slope basis (``correlation_least_squares.piecewise_linear_step``)
+NODE_PARAMETERS = {"sample_rate": RATE, "method": "cls-markov", "order": 3, "delay": 2,
+                   "partition": [-1.05, -0.75, -0.45, -0.15, 0.15, 0.45, 0.75, 1.05],
                    "window": 4000, "solve_rate": 2.0}
 ROW_PERIOD = 2.0  # s between table rows
 CONVERGED_POLE_RSS = 0.02
@@ -167,6 +170,24 @@ def _row(elapsed: float, watcher: _Watcher) -> str:
             f"{_number(c['nonlinearity_percent'], 8, 1)}  {_number(c['fit_percent'], 7, 1)}")
 
 
+MAP_INPUTS = (-0.8, -0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6, 0.8)
+
+
+def _map_rows(truth: dict, estimate: dict) -> list[str]:
+    """The true and the estimated map at MAP_INPUTS (the estimate at the least-squares scale
+    onto the truth: F and G share the gain), as two table rows."""
+    points, true_points = (np.asarray(d.get("points") or [], dtype=float) for d in (estimate, truth))
+    if points.size == 0 or true_points.size == 0:
+        return []
+    u = np.asarray(MAP_INPUTS)
+    f = np.interp(u, points[:, 0], points[:, 1])
+    g = np.interp(u, true_points[:, 0], true_points[:, 1])
+    scale = (g @ f) / (f @ f) if f @ f > 0 else 1.0
+    return ["  u            " + " ".join(f"{x:+6.2f}" for x in u),
+            "  F(u) true    " + " ".join(f"{x:+6.2f}" for x in g),
+            "  F(u) model   " + " ".join(f"{x:+6.2f}" for x in scale * f)]
+
+
 def _summary(watcher: _Watcher) -> tuple[str, bool]:
     truth, model = watcher.truth, watcher.model
     if truth is None or model is None:
@@ -180,9 +201,9 @@ def _summary(watcher: _Watcher) -> tuple[str, bool]:
         f"estimated poles  {_format_roots(model['poles'])}",
         f"true zeros       {_format_roots(truth['zeros'])}",
         f"estimated zeros  {_format_roots(model['zeros'])}",
-        f"nonlinearity     true: dead zone +-{PLANT_PARAMETERS['threshold']}; estimated: {nl.get('kind', '-')} "
-        f"{np.round(nl.get('coefficients', []), 3).tolist()} "
-        f"(relative error {_number(c['nonlinearity_percent'], 0, 1)} % after scaling)",
+        f"nonlinearity     true: dead zone +-{PLANT_PARAMETERS['threshold']}; estimated: {nl.get('kind', '-')}, "
+        f"relative error {_number(c['nonlinearity_percent'], 0, 1)} % after scaling",
+        *_map_rows(truth.get("nonlinearity", {}), nl),
         f"{'converged' if ok else 'NOT converged'}: pole RSS error {c['pole_rss']:.4f} "
         f"({'<' if ok else '>='} {CONVERGED_POLE_RSS}), zero RSS error {c['zero_rss']:.4f}, "
         f"fit {_number(c['fit_percent'], 0, 1)} % after {watcher.models} models",

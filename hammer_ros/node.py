@@ -111,7 +111,8 @@ PARAMETERS: dict[str, Spec] = {
     "mu": Spec(0, "int", "Markov parameters of mu-Markov methods; 0 = method default", 0, 10_000),
     "tau_max": Spec(60, "int", "largest correlation lag (CLS)", 1, MAX_TAU_MAX),
     "poly": Spec(3, "int", "polynomial order p of the nonlinearity", 1, 50),
-    "partition": Spec(None, "floats", "PLLS breakpoints c1 < c2 < ...; empty = method default"),
+    "partition": Spec(None, "floats", "breakpoints c1 < c2 < ... of a piecewise-linear map (PLLS; cls-arx/"
+                      "cls-markov: F piecewise linear instead of the polynomial); empty = method default"),
     "interpolation": Spec("zoh", "str", "resampling onto the grid", choices=("zoh", "linear")),
     "max_gap": Spec(0.0, "float", "seconds without samples that restart the window; 0 = 5 sample periods", 0.0, 1e6),
     "min_fill": Spec(0.25, "float", "fraction of the window needed before the first solve", 0.0, 1.0),

@@ -263,3 +263,36 @@ def test_cls_handles_a_command_with_an_offset(method, g1):
     poles, zeros = np.median(errors, axis=0)
     limit = 0.02 if method == "cls-markov" else 0.05
     assert poles < limit and zeros < 2 * limit
+
+
+def _dead_zone(v):
+    return np.where(v > 0.1, v - 0.1, np.where(v < -0.1, v + 0.1, 0.0))
+
+
+def test_cls_with_a_partition_gives_a_piecewise_linear_map(g1, capsys, tmp_path):
+    """CLS step 1 needs no form of F (Lemma 2); step 2 in the point-slope basis (paper 001)
+    recovers a dead zone that the cubic polynomial cannot hold, with the same poles. The
+    breakpoints are not at the dead zone's corners (+-0.1)."""
+    partition = tuple(np.round(np.arange(-0.33, 0.34, 0.06), 2))  # equally spaced, corners off the grid
+    grid = np.linspace(-0.3, 0.3, 121)
+    errors = []
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        v = rng.standard_normal(5001) / (2 * np.pi)
+        y = g1.simulate(_dead_zone(v)) + 0.001 * rng.standard_normal(v.size)
+        polynomial = identify("cls-markov", v, y, IdentifyOptions(order=3, delay=1))
+        piecewise = identify("cls-markov", v, y, IdentifyOptions(order=3, delay=1, partition=partition))
+        assert root_rss_error(polynomial.poles, piecewise.poles) < 1e-12  # step 1 is the same
+        truth = _dead_zone(grid)
+        for result in (polynomial, piecewise):  # the shape: after the best scale (F and G share the gain)
+            f = result.nonlinearity(grid)
+            errors.append(np.linalg.norm(truth - (f @ truth) / (f @ f) * f) / np.linalg.norm(truth))
+    polynomial_error, piecewise_error = np.median(np.reshape(errors, (-1, 2)), axis=0)
+    assert piecewise_error < 0.05 < 0.1 < polynomial_error
+    path = tmp_path / "dz.csv"
+    np.savetxt(path, np.column_stack([v, y]), delimiter=",", header="u,y", comments="")
+    assert cli_main(["identify", str(path), "--method", "cls-markov", "--order", "3", "--delay", "1",
+                     "--partition", ",".join(map(str, partition)), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["nonlinearity"]["kind"] == "piecewise_linear" and doc["nonlinearity"]["breakpoints"] == list(partition)
+    assert doc["fit_percent"] > 95

@@ -89,10 +89,11 @@ def test_forgetting_sums_equal_weighted_batch_reference(record):
     np.testing.assert_allclose(weighted_cross_correlation(v, y, 20, 1.0), cross_correlation(v, y, 20), atol=1e-15)
 
 
-@pytest.mark.parametrize("method", ["cls-markov", "cls-arx", "nls-arx", "plls-hammerstein"])
-def test_streaming_solve_equals_batch_identify_on_the_same_window(record, g1, method):
+@pytest.mark.parametrize(("method", "partition"), [("cls-markov", None), ("cls-arx", None), ("nls-arx", None),
+                                                   ("plls-hammerstein", None), ("cls-markov", (-0.1, 0.0, 0.1))])
+def test_streaming_solve_equals_batch_identify_on_the_same_window(record, g1, method, partition):
     t, v, y = record
-    config = EngineConfig(sample_rate=100.0, window=4000, tau_max=60, method=method)
+    config = EngineConfig(sample_rate=100.0, window=4000, tau_max=60, method=method, partition=partition)
     engine = StreamingEngine(config)
     feed_randomly(engine, t, v, y, seed=5)
     outcome = engine.solve()
