@@ -328,7 +328,8 @@ def test_yaml_is_loaded_safely(capsys, tmp_path):
 # ------------------------------------------------------------------------------------ options
 @pytest.mark.parametrize("argv, needle", [
     (["identify", "{csv}", "--method", "cls-arx", "--mu", "5"], "--mu: not used by --method cls-arx"),
-    (["identify", "{csv}", "--method", "cls-markov", "--partition", "-0.5,0.5"], "--partition: not used by"),
+    (["identify", "{csv}", "--method", "bf-hammerstein", "--partition", "-0.5,0.5"],
+     "--partition: not used by --method bf-hammerstein"),
     (["identify", "{csv}", "--method", "nls-arx", "--tau-max", "40"], "--tau-max: not used by --method nls-arx"),
     (["identify", "{csv}", "--order", "2", "--delay", "3"], "--delay: relative degree 3 exceeds --order 2"),
     (["identify", "{csv}", "--config", str(FLOAT64_CONFIG)], "--config: a msg_config maps bag topics"),
