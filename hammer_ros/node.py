@@ -63,6 +63,7 @@ from .outputs import (  # noqa: E402
     to_ros_message,
 )
 from .outputs import _message_class as output_message_class  # noqa: E402
+from .result import strict_json  # noqa: E402
 from .sample_clock import ArrivalStamper  # noqa: E402
 from .streaming import (  # noqa: E402
     MAX_TAU_MAX,
@@ -479,7 +480,7 @@ class IdentificationNode(Node):
         except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
             doc["error"] = f"window not diagnosable: {exc}"
         doc["seconds"] = time.perf_counter() - started
-        values = {"data": json.dumps(_finite_json(doc), allow_nan=False)}
+        values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
         self._record([("~/diagnosis", DIAGNOSIS_TYPE, values)], self.get_clock().now().nanoseconds * 1e-9)
         if not self._stop.is_set():
             self._diagnosis_publisher.publish(to_ros_message(DIAGNOSIS_TYPE, values))
@@ -577,21 +578,6 @@ class IdentificationNode(Node):
         self._wake.set()
         for worker in self._workers:
             worker.join(timeout=1.0)
-
-
-def _finite_json(value: Any) -> Any:
-    """A copy with NaN/inf as null and numpy scalars/arrays as Python values (strict JSON)."""
-    if isinstance(value, dict):
-        return {str(k): _finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_finite_json(v) for v in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    return value
 
 
 def _normal_type(name: str) -> str:

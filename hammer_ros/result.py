@@ -91,3 +91,19 @@ class IdentificationResult:
 
 def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
+
+
+def strict_json(value: Any) -> Any:
+    """A copy that ``json.dumps(..., allow_nan=False)`` accepts: NaN/inf become null, numpy
+    scalars and arrays Python numbers and lists, tuples lists."""
+    if isinstance(value, dict):
+        return {str(k): strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    return value

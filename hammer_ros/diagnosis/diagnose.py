@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..result import fit_percent, rms_error
+from ..result import fit_percent, rms_error, strict_json
 from .evidence import (
     CauseTest,
     LineTest,
@@ -76,20 +76,7 @@ class Diagnosis:
             "gain": None if self.gain is None else {"rms_ratio": float(self.gain)},
             "candidates": [{"cause": c, "rms_ratio": float(g)} for c, g in self.candidates],
         }
-        return _finite(doc)
-
-
-def _finite(x):
-    """JSON-safe copy: non-finite floats become None."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_finite(v) for v in x]
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    return x
+        return strict_json(doc)
 
 
 @dataclass(frozen=True, eq=False)
