@@ -57,19 +57,30 @@ def _roots(pairs) -> np.ndarray:
     return np.array([complex(re, im) for re, im in pairs], dtype=complex)
 
 
-def nonlinearity_error(truth: dict, estimate: dict) -> float | None:
-    """Relative RMS distance (in %) between the true map and the estimate on the estimate's
-    points, after scaling the estimate by the least-squares factor (F and G share the gain)."""
+def maps_at(truth: dict, estimate: dict,
+            u: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(u, true F(u), estimated F(u) at the least-squares scale onto the truth: F and G share
+    the gain) at ``u`` (default the estimate's points); None without points or with a zero map."""
     points = np.asarray(estimate.get("points") or [], dtype=float)
     true_points = np.asarray(truth.get("points") or [], dtype=float)
     if points.size == 0 or true_points.size == 0:
         return None
-    u, f = points[:, 0], points[:, 1]
+    u = points[:, 0] if u is None else np.asarray(u, dtype=float)
+    f = np.interp(u, points[:, 0], points[:, 1])
     g = np.interp(u, true_points[:, 0], true_points[:, 1])
     if not (f @ f > 0 and g @ g > 0):
         return None
-    scale = (g @ f) / (f @ f)
-    return float(100.0 * np.linalg.norm(g - scale * f) / np.linalg.norm(g))
+    return u, g, (g @ f) / (f @ f) * f
+
+
+def nonlinearity_error(truth: dict, estimate: dict) -> float | None:
+    """Relative RMS distance (in %) between the true map and the scaled estimate (``maps_at``)
+    on the estimate's points."""
+    maps = maps_at(truth, estimate)
+    if maps is None:
+        return None
+    _, g, f = maps
+    return float(100.0 * np.linalg.norm(g - f) / np.linalg.norm(g))
 
 
 def compare(truth: dict, model: dict) -> dict:
@@ -174,18 +185,12 @@ MAP_INPUTS = (-0.8, -0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6, 0.8)
 
 
 def _map_rows(truth: dict, estimate: dict) -> list[str]:
-    """The true and the estimated map at MAP_INPUTS (the estimate at the least-squares scale
-    onto the truth: F and G share the gain), as two table rows."""
-    points, true_points = (np.asarray(d.get("points") or [], dtype=float) for d in (estimate, truth))
-    if points.size == 0 or true_points.size == 0:
+    """The true and the (scaled, ``maps_at``) estimated map at MAP_INPUTS, as table rows."""
+    maps = maps_at(truth, estimate, MAP_INPUTS)
+    if maps is None:
         return []
-    u = np.asarray(MAP_INPUTS)
-    f = np.interp(u, points[:, 0], points[:, 1])
-    g = np.interp(u, true_points[:, 0], true_points[:, 1])
-    scale = (g @ f) / (f @ f) if f @ f > 0 else 1.0
-    return ["  u            " + " ".join(f"{x:+6.2f}" for x in u),
-            "  F(u) true    " + " ".join(f"{x:+6.2f}" for x in g),
-            "  F(u) model   " + " ".join(f"{x:+6.2f}" for x in scale * f)]
+    return [f"  {label:<13}" + " ".join(f"{x:+6.2f}" for x in row)
+            for label, row in zip(("u", "F(u) true", "F(u) model"), maps)]
 
 
 def _summary(watcher: _Watcher) -> tuple[str, bool]:

@@ -14,6 +14,14 @@ import numpy as np
 from .errors import IdentificationError
 
 
+def delayed(x: np.ndarray, lag: int, initial: float = 0.0) -> np.ndarray:
+    """x(k - lag), the first ``lag`` values (the record's unknown past) set to ``initial``."""
+    x = np.asarray(x, dtype=float)
+    if lag <= 0:
+        return x
+    return np.concatenate([np.full(min(lag, x.size), initial), x[: max(x.size - lag, 0)]])
+
+
 def lagged_columns(x: np.ndarray, lags, rows: np.ndarray) -> np.ndarray:
     """Columns x(k - l) for l in ``lags`` at sample indices k in ``rows``.
 

@@ -43,7 +43,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from .errors import IdentificationError
 from .linear import LinearModel
 from .methods import IdentifyOptions
-from .regression import build_regression, solve_least_squares
+from .regression import build_regression, delayed, solve_least_squares
 from .result import IdentificationResult
 from .static_maps import NonparametricMap
 
@@ -111,7 +111,7 @@ def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int) -> Ou
         model, y_hat = simulate(p)
         u_f = signal.lfilter([1.0], model.a, u0)
         y_f = signal.lfilter([1.0], model.a, y_hat)
-        columns = [_delayed(y_f, j) for j in range(1, order + 1)] + [-_delayed(u_f, i) for i in lags]
+        columns = [delayed(y_f, j) for j in range(1, order + 1)] + [-delayed(u_f, i) for i in lags]
         return np.column_stack([*columns, -np.ones(u0.size)])[burn_in:]
 
     with np.errstate(over="ignore", invalid="ignore"):
@@ -131,10 +131,6 @@ def _model(p: np.ndarray, order: int, lags: np.ndarray) -> LinearModel:
     b = np.zeros(order + 1)
     b[lags] = p[order : order + lags.size]
     return LinearModel(b, np.concatenate([[1.0], p[:order]]))
-
-
-def _delayed(x: np.ndarray, lag: int) -> np.ndarray:
-    return np.concatenate([np.zeros(lag), x[: x.size - lag]])
 
 
 def minimum_phase_counterpart(model: LinearModel, delay: int, omega_ref: float = 0.0) -> LinearModel:

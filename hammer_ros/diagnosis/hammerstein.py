@@ -17,15 +17,16 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import signal, stats
+from scipy import linalg, signal, stats
 
 from ..errors import IdentificationError
 from ..linear import LinearModel
 from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map, rank_one_factors
 from ..regression import build_regression, lagged_columns, solve_least_squares
+from ..result import rms_error
 from ..static_maps import PiecewiseLinearMap
 from .simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
-from .split import delayed
+from .split import held_back
 
 MAX_ORDER_SEARCH = 4
 
@@ -271,12 +272,12 @@ def input_delay(v: np.ndarray, y: np.ndarray, order: int) -> int | None:
     dof = rows.size - phi.shape[1]
     if dof < 10:
         return None
-    r = np.linalg.qr(phi, mode="r")
+    q_factor, r = np.linalg.qr(phi)
     if np.min(np.abs(np.diag(r))) < 1e-10 * np.max(np.abs(np.diag(r))):
         return None
-    theta = solve_least_squares(phi, y[rows])
+    r_inv = linalg.solve_triangular(r, np.eye(r.shape[0]))
+    theta = r_inv @ (q_factor.T @ y[rows])  # least squares by the same QR
     sigma2 = float(np.sum((y[rows] - phi @ theta) ** 2)) / dof
-    r_inv = np.linalg.solve(r, np.eye(r.shape[0]))
     critical = stats.f.isf(1e-3 / lags, q, dof)
     for lag in range(lags):
         block = slice(n + lag * q, n + (lag + 1) * q)
@@ -311,13 +312,13 @@ def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None) -> int:
     partition = quantile_partition(v, default_breakpoints(v.size))
     errors = {}
     for shift, d in ((0, total), (total - 1, 1)):
-        shifted = delayed(v, shift)
+        shifted = held_back(v, shift)
         try:
             model = fit_hammerstein(shifted, y, n, d, partition, free_knots=False)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             return 0
         skip = max(transient_samples(model.linear.poles, v.size), total + n)
-        errors[shift] = float(np.sqrt(np.mean((y - model.simulate(shifted))[skip:] ** 2)))
+        errors[shift] = rms_error(y[skip:], model.simulate(shifted)[skip:])
     return total - 1 if errors[total - 1] <= DEAD_TIME_GAIN * errors[0] else 0
 
 

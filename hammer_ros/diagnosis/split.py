@@ -9,6 +9,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ..errors import UsageError
+from ..regression import delayed
 
 MIN_SAMPLES = 60
 INITIAL_SAMPLES = 3  # measured outputs averaged for the operating point a separate record starts at
@@ -54,9 +55,9 @@ class Split:
         if samples <= 0:
             return self
         if self.continuous:
-            v = delayed(self.v_all, samples)
+            v = held_back(self.v_all, samples)
             return Split(v[: self.n_est], self.y_est, v[self.n_est :], self.y_val, True)
-        return Split(delayed(self.v_est, samples), self.y_est, delayed(self.v_val, samples), self.y_val, False)
+        return Split(held_back(self.v_est, samples), self.y_est, held_back(self.v_val, samples), self.y_val, False)
 
     def estimation_tail(self, samples: int) -> Split:
         """The same split with only the last ``samples`` estimation samples (to bound the cost
@@ -66,12 +67,9 @@ class Split:
         return Split(self.v_est[-samples:], self.y_est[-samples:], self.v_val, self.y_val, self.continuous)
 
 
-def delayed(v: np.ndarray, samples: int) -> np.ndarray:
-    """v(k - samples), the first ``samples`` values held at v(0) (the record's past unknown)."""
-    v = np.asarray(v, dtype=float)
-    if samples <= 0:
-        return v
-    return np.concatenate([np.full(min(samples, v.size), v[0]), v[: max(v.size - samples, 0)]])
+def held_back(v: np.ndarray, samples: int) -> np.ndarray:
+    """v(k - samples), the unknown past held at v(0) (the record starts in steady motion)."""
+    return delayed(v, samples, float(v[0])) if np.size(v) else np.asarray(v, dtype=float)
 
 
 def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0: float,
