@@ -462,9 +462,13 @@ class IdentificationNode(Node):
 
     def _diagnosis_loop(self) -> None:
         """Every ``diagnosis_period`` s: ``diagnose_record`` on the current raw window (estimation
-        on its first 70 %, validation on the rest), published as JSON on ~/diagnosis."""
-        while not self._stop.wait(self.values["diagnosis_period"] or 1.0):
-            if self.values["diagnosis_period"] > 0:
+        on its first 70 %, validation on the rest), published as JSON on ~/diagnosis. The period
+        is read every 0.5 s, so a live change applies at once."""
+        last = time.monotonic()
+        while not self._stop.wait(0.5):
+            period = self.values["diagnosis_period"]
+            if period > 0 and time.monotonic() - last >= period:
+                last = time.monotonic()
                 self._guarded(self._diagnose_once, "diagnosing")
 
     def _diagnose_once(self) -> None:
