@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -57,6 +58,19 @@ def _set(listener: Listener, **values):
     listener.wait_for(lambda: client.services_are_ready(), what="the node's parameter services")
     future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
     return listener.wait_future(future).results
+
+
+def _wait_quiet(listener: Listener, seconds: float) -> None:
+    """Spin until no model has arrived for ``seconds``."""
+    seen, since = len(listener.models), time.monotonic()
+
+    def quiet() -> bool:
+        nonlocal seen, since
+        if len(listener.models) != seen:
+            seen, since = len(listener.models), time.monotonic()
+        return time.monotonic() - since >= seconds
+
+    listener.wait_for(quiet, what=f"{seconds:g} s without a new model")
 
 
 def _get(listener: Listener, *names):
@@ -133,9 +147,10 @@ def test_late_joining_subscriber_gets_the_latest_model(live):
     assert info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
     assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
     live.wait_for(lambda: live.models, what="a model")
+    count = len(live.models)  # counted before: the solve the change triggers may arrive with the reply
     assert [r.successful for r in _set(live, solve_rate=0.01)] == [True]  # one solve now, the next in 100 s
-    count = len(live.models)
     live.wait_for(lambda: len(live.models) > count, what="the solve triggered by the change")
+    _wait_quiet(live, 1.0)  # the triggered solve's model is the last one for 100 s
     late = live.subscribe_json("/hammer_ros/model")
     live.wait_for(lambda: late, what="the latched model on a late subscription")
     assert late[-1] == live.models[-1]
