@@ -670,11 +670,21 @@ def memory_child(window: int, method: str = "cls-markov") -> dict:
             "reason": outcome.reason}
 
 
-def memory_section(windows: Sequence[int]) -> Section:
-    section = Section("memory", "6. Peak memory of the engine (fresh process; cls-markov, mu 30, tau_max 66)", [
-        ("case", "W"), ("ingest", "ingest peak MiB"), ("solve", "solve peak MiB"),
-        ("reference", "raw window (v, y float64) MiB"), ("ratio", "ingest / raw window"),
-        ("solve_seconds", "solve s")])
+def memory_section(windows: Sequence[int], node: bool = True) -> Section:
+    """Per W: the engine alone in a fresh process (``memory_child``) and, with ``node``, a fresh
+    ``hammer-ros node`` fed over DDS (``ros_rate_probe.node_memory``)."""
+    section = Section("memory", "6. Peak memory of the engine and of the node (fresh processes; cls-markov, "
+                      "mu 30, tau_max 66)", [
+        ("case", "W"), ("ingest", "engine ingest peak MiB"), ("solve", "engine solve peak MiB"),
+        ("reference", "raw window (v, y float64) MiB"), ("ratio", "engine ingest / raw window"),
+        ("solve_seconds", "engine solve s"), ("node_idle", "node idle RSS MiB"), ("node_peak", "node peak RSS MiB"),
+        ("node_added", "node peak - idle MiB")])
+    node_memory = None
+    if node:
+        try:
+            from .ros_rate_probe import node_memory
+        except ImportError as exc:  # rclpy missing
+            section.notes.append(f"node rows skipped: {exc}")
     for window in windows:
         code = f"import json; from hammer_ros.bench import memory_child; print(json.dumps(memory_child({window})))"
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900,
@@ -686,11 +696,29 @@ def memory_section(windows: Sequence[int]) -> Section:
         raw = 2 * 8 * window / 2**20
         ingest = (doc["ingest_peak_kib"] - doc["baseline_kib"]) / 1024
         solve = (doc["solve_peak_kib"] - doc["baseline_kib"]) / 1024
-        section.rows.append({"case": f"{window:,}", "window": window, "ingest": ingest, "solve": solve,
-                             "reference": raw, "ratio": ingest / raw, "baseline_mib": doc["baseline_kib"] / 1024,
-                             "solve_seconds": doc["solve_seconds"] if doc["solve_ok"] else f"not ok: {doc['reason']}"})
-    section.notes.append("MiB above the process's resident size after the imports (VmHWM - VmRSS), i.e. what the "
-                         "engine adds; the node adds the same on top of its rclpy baseline")
+        row = {"case": f"{window:,}", "window": window, "ingest": ingest, "solve": solve,
+               "reference": raw, "ratio": ingest / raw, "baseline_mib": doc["baseline_kib"] / 1024,
+               "solve_seconds": doc["solve_seconds"] if doc["solve_ok"] else f"not ok: {doc['reason']}"}
+        if node_memory is not None:
+            try:
+                with contextlib.redirect_stdout(sys.stderr):
+                    live = node_memory(window)
+            except (RuntimeError, OSError, subprocess.SubprocessError) as exc:
+                row["node_idle"] = f"failed: {exc}"
+            else:
+                row.update(node_idle=live["idle_kib"] / 1024, node_peak=live["peak_kib"] / 1024,
+                           node_added=(live["peak_kib"] - live["idle_kib"]) / 1024,
+                           node_complete=live["filled"] and live["solved"])
+                if not row["node_complete"]:
+                    row["node_added"] = f"{row['node_added']:.3g} (window not filled and solved)"
+        section.rows.append(row)
+    section.notes.append("engine: MiB above the process's resident size after the imports (VmHWM - VmRSS), while "
+                         "it ingests 2 W samples and over one solve of the full window")
+    if node_memory is not None:
+        section.notes.append("node: VmRSS of a fresh `hammer-ros node` (window W, cls-markov, 1 solve/s, a diagnosis "
+                             "every 2 s of its newest `diagnosis_window` = 10,000 samples) after startup, and its "
+                             "VmHWM once 1.2 W samples of G1 / tanh data (Float64MultiArray of 1000 samples, 200 "
+                             "messages/s per topic) filled the window and it solved twice and diagnosed once more")
     return section
 
 

@@ -123,6 +123,8 @@ PARAMETERS: dict[str, Spec] = {
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
     "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
                              "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
+    "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
+                             "grows faster than linearly: ~2 s for 10^4 samples)", 100, MAX_WINDOW),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
     "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
     "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
@@ -461,9 +463,10 @@ class IdentificationNode(Node):
         return outcome
 
     def _diagnosis_loop(self) -> None:
-        """Every ``diagnosis_period`` s: ``diagnose_record`` on the current raw window (estimation
-        on its first 70 %, validation on the rest), published as JSON on ~/diagnosis. The period
-        is read every 0.5 s, so a live change applies at once."""
+        """Every ``diagnosis_period`` s: ``diagnose_record`` on the newest ``diagnosis_window``
+        samples of the raw window (estimation on their first 70 %, validation on the rest),
+        published as JSON on ~/diagnosis. The period is read every 0.5 s, so a live change
+        applies at once."""
         last = time.monotonic()
         while not self._stop.wait(0.5):
             period = self.values["diagnosis_period"]
@@ -476,11 +479,13 @@ class IdentificationNode(Node):
 
         with self._lock:
             snapshot = self.engine.snapshot()
+        newest = self.values["diagnosis_window"]
+        v, y = snapshot.v[-newest:], snapshot.y[-newest:]
         started = time.perf_counter()
-        doc: dict[str, Any] = {"samples": int(snapshot.v.size), "stamp": snapshot.stamp}
+        doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
         try:
             with np.errstate(all="ignore"):
-                doc |= diagnose_record(snapshot.v, snapshot.y, order=self.values["order"]).to_json()
+                doc |= diagnose_record(v, y, order=self.values["order"]).to_json()
         except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
             doc["error"] = f"window not diagnosable: {exc}"
         doc["seconds"] = time.perf_counter() - started

@@ -150,6 +150,45 @@ def test_a_corrupt_chunk_is_skipped_and_the_rest_is_read(capsys, tmp_path):
     assert pole_error(doc) < 0.05
 
 
+def damaged(data: bytes, rng: np.random.Generator) -> tuple[str, bytes]:
+    """One random damage of a file: flipped bits, a zeroed run, a cut, or a spliced-out stretch."""
+    b = bytearray(data)
+    kind = ("flips", "zeroed", "cut", "splice")[rng.integers(4)]
+    if kind == "flips":
+        for at in rng.integers(len(b), size=rng.integers(1, 20)):
+            b[at] ^= 1 << int(rng.integers(8))
+    elif kind == "zeroed":
+        at = int(rng.integers(len(b)))
+        b[at:at + int(rng.integers(1, 4000))] = b"\0" * len(b[at:at + 4000])
+    elif kind == "cut":
+        del b[int(rng.integers(len(b))):]
+    else:
+        at, to = sorted(int(i) for i in rng.integers(len(b), size=2))
+        del b[at:to]
+    return kind, bytes(b)
+
+
+def test_randomly_damaged_bags_give_a_model_or_one_line_never_a_traceback(capsys, tmp_path):
+    """A fuzz of the sample bag: 40 random damages (seeded). Each run either identifies (exit 0,
+    a model) or exits 2 with one error line naming the file - never exit 1 or a traceback."""
+    rng = np.random.default_rng(11)
+    data = FLOAT64_BAG.read_bytes()
+    outcomes = {0: 0, 2: 0}
+    for trial in range(40):
+        kind, damage = damaged(data, rng)
+        path = tmp_path / f"damaged_{trial}.mcap"
+        path.write_bytes(damage)
+        code, out, err = run(capsys, "identify", path, "--config", FLOAT64_CONFIG, "--method", "cls-arx", "--json")
+        assert code in outcomes and "Traceback" not in err, (kind, trial, code, err)
+        if code == 0:
+            assert len(json.loads(out)["poles"]) == 3, (kind, trial)
+        else:
+            [line] = [x for x in err.splitlines() if x.startswith("hammer-ros: error: ")]
+            assert path.name in line, (kind, trial, line)
+        outcomes[code] += 1
+    assert min(outcomes.values()) >= 5, outcomes  # both outcomes were exercised
+
+
 def test_a_bag_broken_inside_its_first_chunk_is_a_one_line_error(capsys, tmp_path):
     whole = g1_bag(tmp_path / "one_chunk.mcap", chunk_size=10_000_000)
     cut = tmp_path / "cut.mcap"

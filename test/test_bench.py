@@ -1,6 +1,6 @@
 """Smoke test of the ``hammer-ros bench`` machinery on tiny sizes (no timing thresholds: speed is
-the benchmark's business, not the tests'). The live-node section needs DDS and is left to
-``test_node`` / ``ros_rate_probe``."""
+the benchmark's business, not the tests'). The live-node rate section is left to ``test_node``
+/ ``ros_rate_probe``; the memory section runs a real node over DDS."""
 
 from __future__ import annotations
 
@@ -53,6 +53,8 @@ def test_bench_sections_run_on_tiny_sizes():
         assert any("SysIdentPy rows skipped" in note for note in sections["peers"].notes)
     memory = sections["memory"].rows
     assert memory[0]["window"] == 2000 and memory[0]["reference"] > 0 and memory[0]["solve"] >= 0
+    assert memory[0]["node_complete"], memory[0]  # a real node over DDS filled its window, solved, diagnosed
+    assert 50 < memory[0]["node_idle"] <= memory[0]["node_peak"] < 2000, memory[0]
 
     table = bench.goals(sections)
     assert {r["goal"].split(" ")[0] for r in table.rows} >= {"engine", "replay", "CLS"}

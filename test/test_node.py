@@ -20,7 +20,8 @@ pytestmark = pytest.mark.ros
 
 RATE = 500.0
 PLANT = {"rate": RATE, "nonlinearity": "dead_zone", "threshold": 0.2, "amplitude": 0.5, "noise": 0.002, "seed": 7}
-NODE = {"sample_rate": RATE, "order": 3, "delay": 2, "window": 4000, "solve_rate": 4.0, "diagnosis_period": 5.0}
+NODE = {"sample_rate": RATE, "order": 3, "delay": 2, "window": 4000, "solve_rate": 4.0, "diagnosis_period": 5.0,
+        "diagnosis_window": 3500}
 POLE_TOLERANCE = 0.02  # RSS, the issue's acceptance bound
 
 
@@ -103,9 +104,11 @@ def test_model_poles_converge_to_the_plant(live):
 
 def test_diagnosis_of_the_window_is_published(live):
     """~/diagnosis: the plant is a clean Hammerstein system (dead zone, linear block, small
-    noise), so once the window is full its diagnosis must find nothing missing."""
-    full = live.wait_for(lambda: [d for d in live.diagnoses if d.get("samples") == NODE["window"]],
-                         timeout=60, what="a diagnosis of a full window")[-1]
+    noise), so once the window holds diagnosis_window samples its diagnosis (of the newest
+    diagnosis_window of the 4000) must find nothing missing."""
+    full = live.wait_for(lambda: [d for d in live.diagnoses if d.get("samples") == NODE["diagnosis_window"]],
+                         timeout=60, what="a diagnosis of diagnosis_window samples")[-1]
+    assert max(d["samples"] for d in live.diagnoses) == NODE["diagnosis_window"] < NODE["window"]
     assert full["cause"] == "none", full
     assert full["extended"] is None and full["gain"] is None
     assert full["baseline"]["fit_percent"] > 80
