@@ -52,7 +52,7 @@ from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E40
 
 from .bag_io import ResultWriter, node_topic  # noqa: E402
 from .errors import UsageError  # noqa: E402
-from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
+from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path, sample_extractor  # noqa: E402
 from .methods import METHODS  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
@@ -75,6 +75,7 @@ from .streaming import (  # noqa: E402
 )
 
 NODE_NAME = "hammer_ros"
+SPINS_PER_CHECK = 100  # executor events between checks of rclpy.ok()
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
 MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
@@ -227,6 +228,7 @@ class _Input:
         self.name = name
         self.subscription = None
         self.path: FieldPath | None = None
+        self.extract = None  # sample_extractor(path): a float (one sample) or a float array per message
         self.field_errors = 0
         self.last_error = ""
         self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
@@ -300,6 +302,7 @@ class IdentificationNode(Node):
             self.destroy_subscription(source.subscription)
         cls = message_class(self.values[f"{stream}_type"])
         source.path = parse_field_path(self.values[f"{stream}_field"])
+        source.extract = sample_extractor(source.path)
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
         def on_lost(info, source=source) -> None:
@@ -314,19 +317,20 @@ class IdentificationNode(Node):
         receive = time.time()
         source = self.inputs[stream]
         try:
-            values = extract_samples(msg, source.path)
+            values = source.extract(msg)
         except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
             source.field_errors += 1
             source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
             self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
             return
+        size = 1 if type(values) is float else values.size
         item = (receive, message_stamp(msg) or 0.0, values)  # stamp 0 = none or unset: place by counting
         with self._pending_lock:
-            if self._pending_samples + values.size > self.values["max_pending"]:  # bounded: a flood is dropped
+            if self._pending_samples + size > self.values["max_pending"]:  # bounded: a flood is dropped
                 source.queue_dropped += 1
                 return
             self._pending[stream].append(item)
-            self._pending_samples += values.size
+            self._pending_samples += size
 
     def _flush(self) -> None:
         """Move the queued samples into the engine: one vectorised add of both streams,
@@ -338,30 +342,48 @@ class IdentificationNode(Node):
             batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
             self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
 
-    def _stamped(self, stream: str, items: list[tuple[float, float, np.ndarray]]) -> tuple | None:
-        """(stamps, values) of one stream's queued messages (None when none could be placed)."""
-        stamps, values = [], []
+    def _stamped(self, stream: str, items: list[tuple[float, float, float | np.ndarray]]) -> tuple | None:
+        """(stamps, values) of one stream's queued messages (None when none could be placed).
+        Per message only its first stamp is found; the stamps of all samples are then made at
+        once, ``first + k / fs`` for the k-th sample of each message."""
+        firsts: list[float] = []
+        sizes: list[int] = []
+        values: list = []
+        explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
+        total = 0
         for receive, stamp, x in items:
-            if x.size == 0:
+            n = 1 if type(x) is float else x.size
+            if n == 0:
                 continue
-            if stamp and x.size == 1:
-                t = (stamp,)
+            if stamp and n == 1:
+                first = stamp
             elif stamp:  # a stamped batch: the last sample at the stamp
-                t = self.engine.message_stamps(stream, stamp, x.size)
+                t = self.engine.message_stamps(stream, stamp, n)
                 if t is None:
                     self.engine.stats.unstamped += 1
                     continue
+                explicit.append((total, t))
+                first = t[0]
             else:
-                first = self.stamper.first_stamp(stream, receive, x.size)
+                first = self.stamper.first_stamp(stream, receive, n)
                 if first is None:
-                    self.unplaced += x.size
+                    self.unplaced += n
                     continue
-                t = (first,) if x.size == 1 else first + np.arange(x.size) / self.stamper.rate
-            stamps.append(t)
+            firsts.append(first)
+            sizes.append(n)
             values.append(x)
+            total += n
         if not values:
             return None
-        return np.concatenate([np.atleast_1d(t) for t in stamps]), np.concatenate(values)
+        if total == len(values) and all(type(x) is float for x in values):  # single samples
+            return np.array(firsts), np.array(values)
+        counts = np.array(sizes)
+        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message
+        # (fs is known whenever a batch was placed by counting; explicit stamps overwrite theirs)
+        stamps = np.repeat(np.array(firsts), counts) + offsets / (self.stamper.rate or 1.0)
+        for start, t in explicit:
+            stamps[start:start + t.size] = t
+        return stamps, np.concatenate([np.atleast_1d(x) for x in values])
 
     def _ingest_loop(self) -> None:
         while not self._stop.wait(FLUSH_PERIOD):
@@ -626,7 +648,8 @@ def main(argv: list[str] | None = None) -> int:
         executor.add_node(node)
         while rclpy.ok():
             try:
-                executor.spin_once(timeout_sec=0.1)
+                for _ in range(SPINS_PER_CHECK):  # (rclpy.ok() per event would cost ~10 % of a busy node)
+                    executor.spin_once(timeout_sec=0.1)
             except (KeyboardInterrupt, ExternalShutdownException):
                 raise
             except Exception as exc:  # a failing callback must not end the node
