@@ -11,6 +11,7 @@ relative degree), i.e. G(q) = B(q^-1) / A(q^-1), the argument order of ``scipy.s
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy import signal
@@ -59,7 +60,9 @@ class LinearModel:
     def dc_gain(self) -> float:
         return float(np.sum(self.b) / np.sum(self.a))
 
-    def _zpk(self):
+    @cached_property
+    def _zpk(self) -> tuple[np.ndarray, np.ndarray]:
+        """(zeros, poles), computed once: the model is immutable."""
         length = max(self.a.size, self.b.size)
         b = np.pad(self.b, (0, length - self.b.size))
         a = np.pad(self.a, (0, length - self.a.size))
@@ -74,11 +77,11 @@ class LinearModel:
 
     @property
     def poles(self) -> np.ndarray:
-        return _sorted_roots(self._zpk()[1])
+        return _sorted_roots(self._zpk[1])
 
     @property
     def zeros(self) -> np.ndarray:
-        return _sorted_roots(self._zpk()[0])
+        return _sorted_roots(self._zpk[0])
 
     def simulate(self, v: np.ndarray) -> np.ndarray:
         """Free-run response to the input sequence ``v`` from zero initial conditions."""

@@ -12,7 +12,7 @@ from hammer_ros.errors import UsageError
 from hammer_ros.linear import root_rss_error
 from hammer_ros.methods import identify
 from hammer_ros.simulate import simulate_hammerstein
-from hammer_ros.streaming import EngineConfig, StreamingEngine
+from hammer_ros.streaming import FFT_MIN_TAU_MAX, EngineConfig, StreamingEngine
 
 
 def cubic(v):
@@ -49,16 +49,17 @@ def assert_sums_match(snapshot, tau_max, reference):
     np.testing.assert_allclose(snapshot.phi_yvv, reference(v**2, y, tau_max), rtol=0, atol=1e-9)
 
 
-def test_sliding_window_sums_equal_batch_cross_correlation(record):
+@pytest.mark.parametrize("tau_max", [25, FFT_MIN_TAU_MAX + 22])  # direct lag loops; FFT block sums
+def test_sliding_window_sums_equal_batch_cross_correlation(record, tau_max):
     t, v, y = record
-    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1500, tau_max=25))
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1500, tau_max=tau_max))
     feed_randomly(engine, t, v, y, largest=5000)  # batches shorter and longer than the window
     snap = engine.snapshot()
     assert engine.stats.aligned == t.size and engine.stats.gaps == 0
     np.testing.assert_array_equal(snap.v, v[-1500:])
     np.testing.assert_array_equal(snap.y, y[-1500:])
-    assert snap.weight == 1500 - 2 * 25  # N + 1 products per lag (paper 000 Remark 2)
-    assert_sums_match(snap, 25, cross_correlation)
+    assert snap.weight == 1500 - 2 * tau_max  # N + 1 products per lag (paper 000 Remark 2)
+    assert_sums_match(snap, tau_max, cross_correlation)
 
 
 def test_sums_before_the_window_is_full_use_every_sample(record):
@@ -71,15 +72,16 @@ def test_sums_before_the_window_is_full_use_every_sample(record):
     assert_sums_match(snap, 30, cross_correlation)
 
 
-def test_forgetting_sums_equal_weighted_batch_reference(record):
+@pytest.mark.parametrize("tau_max", [20, FFT_MIN_TAU_MAX + 22])
+def test_forgetting_sums_equal_weighted_batch_reference(record, tau_max):
     t, v, y = record
     lam = 0.998
-    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1000, tau_max=20, forgetting=lam))
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1000, tau_max=tau_max, forgetting=lam))
     feed_randomly(engine, t, v, y, seed=11)
     snap = engine.snapshot()
-    np.testing.assert_allclose(snap.phi_vv, weighted_cross_correlation(v, v, 20, lam), rtol=0, atol=1e-9)
-    np.testing.assert_allclose(snap.phi_yv, weighted_cross_correlation(v, y, 20, lam), rtol=0, atol=1e-9)
-    np.testing.assert_allclose(snap.phi_yvv, weighted_cross_correlation(v**2, y, 20, lam), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(snap.phi_vv, weighted_cross_correlation(v, v, tau_max, lam), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(snap.phi_yv, weighted_cross_correlation(v, y, tau_max, lam), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(snap.phi_yvv, weighted_cross_correlation(v**2, y, tau_max, lam), rtol=0, atol=1e-9)
     # one batch longer than the window: every centre is still weighted in
     whole = StreamingEngine(EngineConfig(sample_rate=100.0, window=1000, tau_max=20, forgetting=lam))
     whole.add_excitation(t, v)
