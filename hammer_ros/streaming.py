@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 
@@ -64,6 +65,8 @@ GRID_TOLERANCE = 0.01  # of a sample period: stamps this close to a grid point a
 PE_CONDITION_LIMIT = 1e8  # cond(R) above this: input not persistently exciting
 KEEP_MARGIN = 5.0  # fit points by which the published model must beat a new estimate on its window to stay
 CHUNK = 4096  # aligned samples per vectorised update (bounds the buffer headroom)
+BLOCK_CENTRES = 256  # sliding window: fewest centres per block of lag-product sums ...
+BLOCKS_PER_WINDOW = 64  # ... and at most about this many blocks per window (their memory)
 CLS_STRUCTURES = {"cls-arx": "arx", "cls-markov": "markov"}
 # Documented resource limits (README "Robustness"): memory ~ 16 bytes x (window + 4 window pending
 # per stream) and one solve's regression; work per sample ~ tau_max.
@@ -339,12 +342,29 @@ def _lag_products(v: np.ndarray, y: np.ndarray, tau_max: int, weights: np.ndarra
     return sums[:, ::-1]
 
 
+class _Block:
+    """Lag-product sums of the consecutive centres lo..hi (a sliding window's unit of removal)."""
+
+    __slots__ = ("hi", "lo", "sums")
+
+    def __init__(self, lo: int, hi: int, sums: np.ndarray) -> None:
+        self.lo, self.hi, self.sums = lo, hi, sums
+
+
 class _CorrelationWindow:
-    """Raw window of aligned samples and the recursive correlation sums over it."""
+    """Raw window of aligned samples and the recursive correlation sums over it.
+
+    Sliding window (forgetting 1): the products of every centre are formed once, when it
+    arrives, and summed into blocks of >= ``block`` consecutive centres; ``sums`` is the total
+    of the blocks. A block leaves whole (its sums subtracted) once the window has passed it;
+    the part of the oldest block already outside is subtracted only when the correlations are
+    read (once per solve), and ``sums`` is re-added from the blocks every W samples, so
+    rounding cannot drift. Forgetting: ``sums`` decays and the new products are added."""
 
     def __init__(self, window: int, tau_max: int, forgetting: float) -> None:
         self.window, self.tau_max, self.forgetting = window, tau_max, forgetting
-        self.capacity = window + CHUNK
+        self.block = max(BLOCK_CENTRES, window // BLOCKS_PER_WINDOW)
+        self.capacity = window + self.block + 2 * (CHUNK + tau_max)  # the oldest block's samples too
         self.v = np.empty(self.capacity)
         self.y = np.empty(self.capacity)
         self.reset()
@@ -355,7 +375,8 @@ class _CorrelationWindow:
         self.window_start = 0  # segment index of the window's oldest sample
         self.sums = np.zeros((3, 2 * self.tau_max + 1))
         self.weight = 0.0
-        self.centres = (0, -1)  # [lo, hi] segment indices of the centres in the sums
+        self.centres = (0, -1)  # [lo, hi] segment indices of the window's centres
+        self.blocks: deque[_Block] = deque()  # sliding: consecutive centre blocks, oldest first
         self.since_resync = 0
 
     def _local(self, start: int, stop: int) -> slice:
@@ -379,7 +400,8 @@ class _CorrelationWindow:
     def _add_chunk(self, v: np.ndarray, y: np.ndarray) -> None:
         m = v.size
         if self.stored + m > self.capacity:
-            keep = min(self.stored, self.count - self.window_start)
+            oldest = min(self.window_start, self.blocks[0].lo - self.tau_max) if self.blocks else self.window_start
+            keep = min(self.stored, self.count - oldest)
             self.v[:keep] = self.v[self.stored - keep : self.stored]
             self.y[:keep] = self.y[self.stored - keep : self.stored]
             self.stored = keep
@@ -394,18 +416,35 @@ class _CorrelationWindow:
             self._update_sliding(m)
 
     def _update_sliding(self, m: int) -> None:
-        lo, hi = self.centres
         new_lo, new_hi = self._target_centres()
+        first = self.blocks[-1].hi + 1 if self.blocks else new_lo
+        if first < new_lo:  # a chunk longer than the window: everything summed so far has left it
+            self.blocks.clear()
+            self.sums = np.zeros_like(self.sums)
+            first = new_lo
+        if new_hi >= first:
+            products = self._products(first, new_hi)
+            self.sums += products
+            last = self.blocks[-1] if self.blocks else None
+            if last is not None and last.hi - last.lo + 1 < self.block:
+                last.sums += products
+                last.hi = new_hi
+            else:
+                self.blocks.append(_Block(first, new_hi, products))
+        while self.blocks and self.blocks[0].hi < new_lo:
+            self.sums -= self.blocks.popleft().sums
         self.since_resync += m
-        if new_hi < new_lo:
-            self.sums[:] = 0.0
-        elif hi < lo or new_lo > hi or self.since_resync >= self.window:
-            self.sums = self._products(new_lo, new_hi)
+        if self.since_resync >= self.window:
+            self.sums = np.sum([b.sums for b in self.blocks], axis=0) if self.blocks else np.zeros_like(self.sums)
             self.since_resync = 0
-        else:
-            self.sums += self._products(hi + 1, new_hi) - self._products(lo, new_lo - 1)
         self.centres = (new_lo, new_hi)
         self.weight = float(max(0, new_hi - new_lo + 1))
+
+    def window_sums(self) -> np.ndarray:
+        """The sums over the window's centres (sliding: without the oldest block's part outside)."""
+        if self.forgetting < 1.0 or not self.blocks or self.blocks[0].lo >= self.centres[0]:
+            return self.sums
+        return self.sums - self._products(self.blocks[0].lo, self.centres[0] - 1)
 
     def _update_forgetting(self) -> None:
         """Every centre since the (re)start is weighted in, also when a chunk exceeds the window."""
@@ -433,7 +472,8 @@ class _CorrelationWindow:
 
     def correlations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         scale = 1.0 / self.weight if self.weight > 0 else 0.0
-        return self.sums[0] * scale, self.sums[1] * scale, self.sums[2] * scale
+        sums = self.window_sums()
+        return sums[0] * scale, sums[1] * scale, sums[2] * scale
 
 
 class StreamAligner:

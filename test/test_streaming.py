@@ -62,6 +62,30 @@ def test_sliding_window_sums_equal_batch_cross_correlation(record, tau_max):
     assert_sums_match(snap, tau_max, cross_correlation)
 
 
+def test_sliding_sums_stay_exact_at_every_step_of_a_long_stream():
+    """Blocks of centres enter and leave the window in pieces of every size (1 sample to more
+    than the window); after each piece the sums are the batch correlations of the window."""
+    rng = np.random.default_rng(8)
+    n = 30_000
+    t = np.arange(n) / 100.0
+    v = rng.standard_normal(n)
+    y = np.convolve(v, [0.0, 0.5, 0.3], "full")[:n] + 0.1 * v**2
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=700, tau_max=20))
+    i, checked = 0, 0
+    while i < n:
+        m = int(rng.choice([1, 3, 50, 255, 700, 1500]))
+        engine.add_excitation(t[i : i + m], v[i : i + m])
+        engine.add_response(t[i : i + m], y[i : i + m])
+        i += m
+        snap = engine.snapshot()
+        if snap.v.size >= 2 * 20 + 1:
+            aligned = engine.stats.aligned  # (the newest sample waits for the next grid point)
+            np.testing.assert_array_equal(snap.v, v[aligned - snap.v.size : aligned])
+            assert_sums_match(snap, 20, cross_correlation)
+            checked += 1
+    assert checked > 50 and engine.stats.aligned >= n - 1
+
+
 def test_sums_before_the_window_is_full_use_every_sample(record):
     t, v, y = record
     engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=5000, tau_max=30))
