@@ -30,10 +30,11 @@ Pipeline, per batch of timestamped samples of either stream:
        phi_yvv(tau) = 1/(N+1) sum_k y(k) v(k-tau)^2      (second order, paper 003 eq. 21)
 
    for tau = -T..T: exactly ``correlation.cross_correlation`` on the window. A new sample
-   completes the centre k = newest - T (O(T) products); the window's oldest centre is removed
-   exactly (subtracting its products). Batches are vectorised (one matrix product per chunk).
-   Every W samples the sums are recomputed from the raw window, which bounds the rounding
-   drift of the add/subtract recursion.
+   completes the centre k = newest - T, whose O(T) products are formed once (vectorised per
+   chunk: one C correlation loop per row, or real FFTs from T = FFT_MIN_TAU_MAX) into a block
+   of consecutive centres; a block leaves the sums whole once the window has passed it, and
+   the part of the oldest block already outside is subtracted when the correlations are read.
+   Every W samples the sums are re-added from the blocks, so rounding cannot drift.
    With ``forgetting`` lambda < 1 the sums are instead exponentially weighted over every centre
    since the window (re)started: weight lambda^(c - k) for centre k when the newest centre is c,
    divided by the total weight (``correlation.weighted_cross_correlation`` is the batch form).
