@@ -51,6 +51,7 @@ from rclpy.utilities import remove_ros_args  # noqa: E402
 from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
 
 from .bag_io import ResultWriter, node_topic  # noqa: E402
+from .cdr import raw_extractor  # noqa: E402
 from .errors import UsageError  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path, sample_extractor  # noqa: E402
 from .methods import METHODS  # noqa: E402
@@ -229,6 +230,7 @@ class _Input:
         self.subscription = None
         self.path: FieldPath | None = None
         self.extract = None  # sample_extractor(path): a float (one sample) or a float array per message
+        self.raw = None  # cdr.raw_extractor(type, path): the same (and the stamp) from serialized messages
         self.field_errors = 0
         self.last_error = ""
         self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
@@ -303,6 +305,7 @@ class IdentificationNode(Node):
         cls = message_class(self.values[f"{stream}_type"])
         source.path = parse_field_path(self.values[f"{stream}_field"])
         source.extract = sample_extractor(source.path)
+        source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
         def on_lost(info, source=source) -> None:
@@ -310,21 +313,25 @@ class IdentificationNode(Node):
 
         source.subscription = self.create_subscription(
             cls, self.values[f"{stream}_topic"], lambda msg, s=stream: self._on_message(s, msg), qos,
-            event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost))
+            event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost), raw=source.raw is not None)
 
     def _on_message(self, stream: str, msg) -> None:
-        """Subscription callback: extract the samples and queue them (no engine work here)."""
+        """Subscription callback: extract the samples and queue them (no engine work here).
+        ``msg`` is the serialized message when the field is read from raw CDR."""
         receive = time.time()
         source = self.inputs[stream]
         try:
-            values = source.extract(msg)
+            if source.raw is not None:
+                values, stamp = source.raw(msg)
+            else:
+                values, stamp = source.extract(msg), message_stamp(msg) or 0.0
         except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
             source.field_errors += 1
             source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
             self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
             return
         size = 1 if type(values) is float else values.size
-        item = (receive, message_stamp(msg) or 0.0, values)  # stamp 0 = none or unset: place by counting
+        item = (receive, stamp, values)  # stamp 0 = none or unset: place by counting
         with self._pending_lock:
             if self._pending_samples + size > self.values["max_pending"]:  # bounded: a flood is dropped
                 source.queue_dropped += 1

@@ -1,0 +1,205 @@
+"""One numeric field (and ``header.stamp``) read straight from a serialized ROS 2 message,
+without building the Python message: the live node's fast path (rclpy ``raw=True``
+subscriptions; rclpy's own deserialisation of a 100-double Float64MultiArray costs ~18 us, of
+a JointState ~30 us, in the executor thread).
+
+The layout is the message class's own introspection (``get_fields_and_field_types``), read
+as OMG CDR (XCDR1), the encoding of rmw_fastrtps and of ROS 2 bags: a 4-byte encapsulation
+header whose second byte gives the byte order, then the fields in order, each primitive
+aligned to its size relative to the end of that header, strings and sequences as a uint32
+count then their elements, nested messages inline, fixed arrays without a count.
+
+``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` as
+``field_path.sample_extractor`` gives them (a float, or a float64 array) and ``stamp`` the
+header stamp in seconds (0.0 for none), or None when the path cannot be read this way
+(wide strings, a non-numeric target): the caller then subscribes to messages as usual. A
+payload that is short or whose counts lie raises FieldError naming the field.
+"""
+
+from __future__ import annotations
+
+import importlib
+import re
+import struct
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .field_path import FieldError, FieldPath
+
+PRIMITIVES = {  # IDL type -> (struct code, size)
+    "double": ("d", 8), "float": ("f", 4), "int64": ("q", 8), "uint64": ("Q", 8), "int32": ("i", 4),
+    "uint32": ("I", 4), "int16": ("h", 2), "uint16": ("H", 2), "int8": ("b", 1), "uint8": ("B", 1),
+    "char": ("B", 1), "octet": ("B", 1), "byte": ("B", 1), "boolean": ("?", 1),
+}
+HEADER = 4  # encapsulation header: 0x00, 0x01 (little endian) or 0x00 (big endian), options
+_SEQUENCE = re.compile(r"^sequence<([^,>]+)(?:,\s*\d+)?>$")
+_ARRAY = re.compile(r"^(.+)\[(\d+)\]$")
+_BOUNDED_STRING = re.compile(r"^string<\d+>$")
+
+Skip = Callable[[bytes, int, str], int]  # (data, position after the header, byte order) -> position
+
+
+class UnsupportedLayout(Exception):
+    """The field cannot be read from raw CDR here (the caller falls back to messages)."""
+
+
+def _align(pos: int, size: int) -> int:
+    return (pos + size - 1) & -size
+
+
+def _u32(data: bytes, pos: int, order: str) -> tuple[int, int]:
+    pos = _align(pos, 4)
+    return struct.unpack_from(order + "I", data, HEADER + pos)[0], pos + 4
+
+
+def _nested_class(type_name: str):
+    package, name = type_name.split("/")[0], type_name.split("/")[-1]
+    return getattr(importlib.import_module(f"{package}.msg"), name)
+
+
+def _kind(type_name: str) -> tuple[str, Any, int | None]:
+    """('primitive', code-size, count) / ('string', None, count) / ('message', cls, count);
+    count None for one value, -1 for a sequence, k for a fixed array."""
+    count: int | None = None
+    match = _SEQUENCE.match(type_name)
+    if match:
+        type_name, count = match.group(1).strip(), -1
+    else:
+        match = _ARRAY.match(type_name)
+        if match:
+            type_name, count = match.group(1), int(match.group(2))
+    if type_name in PRIMITIVES:
+        return "primitive", PRIMITIVES[type_name], count
+    if type_name == "string" or _BOUNDED_STRING.match(type_name):
+        return "string", None, count
+    if "/" in type_name:
+        return "message", _nested_class(type_name), count
+    raise UnsupportedLayout(type_name)  # wstring and anything unknown
+
+
+def _skipper(type_name: str) -> Skip:
+    """A function that moves past one field of ``type_name``."""
+    kind, what, count = _kind(type_name)
+    if kind == "primitive":
+        size = what[1]
+        if count is None:
+            return lambda data, pos, order: _align(pos, size) + size
+        if count >= 0:
+            return lambda data, pos, order: _align(pos, size) + count * size if count else pos
+
+        def sequence(data: bytes, pos: int, order: str) -> int:
+            n, pos = _u32(data, pos, order)
+            return _align(pos, size) + n * size if n else pos
+        return sequence
+    one = _skip_string if kind == "string" else _message_skipper(what)
+    if count is None:
+        return one
+
+    def repeated(data: bytes, pos: int, order: str) -> int:
+        n = count
+        if n < 0:
+            n, pos = _u32(data, pos, order)
+            if n > len(data) - HEADER - pos:  # every element takes >= 1 byte: a count that lies
+                raise struct.error("a sequence count beyond the end of the message")
+        for _ in range(n):
+            pos = one(data, pos, order)
+        return pos
+    return repeated
+
+
+def _skip_string(data: bytes, pos: int, order: str) -> int:
+    n, pos = _u32(data, pos, order)
+    return pos + n
+
+
+def _message_skipper(cls) -> Skip:
+    skips = [_skipper(t) for t in cls.get_fields_and_field_types().values()]
+
+    def skip(data: bytes, pos: int, order: str) -> int:
+        for one in skips:
+            pos = one(data, pos, order)
+        return pos
+    return skip
+
+
+def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath) -> Callable:
+    """Read the target field at a position: a float, a float64 array, or a Time in seconds."""
+    kind, what, count = _kind(type_name)
+    if kind == "message" and count is None and not indices and \
+            set(what.get_fields_and_field_types()) == {"sec", "nanosec"}:  # builtin_interfaces Time / Duration
+        sec_code = PRIMITIVES[what.get_fields_and_field_types()["sec"]][0]
+
+        def time(data: bytes, pos: int, order: str):
+            pos = _align(pos, 4)
+            sec, nanosec = struct.unpack_from(order + sec_code + "I", data, HEADER + pos)
+            return float(sec + 1e-9 * nanosec)
+        return time
+    if kind != "primitive" or what[0] == "?" or len(indices) > (0 if count is None else 1):
+        raise UnsupportedLayout(type_name)
+    code, size = what
+    if count is None:
+        def scalar(data: bytes, pos: int, order: str):
+            return float(struct.unpack_from(order + code, data, HEADER + _align(pos, size))[0])
+        return scalar
+    dtype = np.dtype(code).newbyteorder("<")
+    index = indices[0] if indices else None
+
+    def elements(data: bytes, pos: int, order: str):
+        n = count
+        if n < 0:
+            n, pos = _u32(data, pos, order)
+        start = HEADER + (_align(pos, size) if n else pos)
+        if start + n * size > len(data):
+            raise FieldError(f"field {path.text!r}: the message ends inside it ({n} elements claimed)")
+        values = np.frombuffer(data, dtype if order == "<" else dtype.newbyteorder(">"), n, start)
+        if index is None:
+            return values if values.dtype == np.float64 and order == "<" else values.astype(np.float64)
+        if not -n <= index < n:
+            raise FieldError(f"field {path.text!r}: index {index} out of range, {n} elements")
+        return float(values[index])
+    return elements
+
+
+def raw_extractor(cls, path: FieldPath) -> Callable[[bytes], tuple[float | np.ndarray, float]] | None:
+    """``extract(data) -> (values, stamp)`` for serialized messages of ``cls`` (see the module
+    docstring), or None when ``path`` is not readable from raw CDR here."""
+    try:
+        steps: list[tuple[list[Skip], Any]] = []  # per nesting level: skips before the field
+        current = cls
+        for i, step in enumerate(path.steps):
+            fields = current.get_fields_and_field_types()
+            if step.name not in fields:
+                return None
+            names = list(fields)
+            before = [_skipper(fields[n]) for n in names[: names.index(step.name)]]
+            if i < len(path.steps) - 1:
+                kind, what, count = _kind(fields[step.name])
+                if kind != "message" or count is not None or step.indices:
+                    return None
+                steps.append((before, None))
+                current = what
+            else:
+                steps.append((before, _reader(fields[step.name], step.indices, path)))
+        stamp = _reader("builtin_interfaces/Time", (), path) \
+            if cls.get_fields_and_field_types().get("header") == "std_msgs/Header" \
+            and next(iter(cls.get_fields_and_field_types())) == "header" else None
+    except (UnsupportedLayout, ImportError, AttributeError):
+        return None
+    read = steps[-1][1]
+
+    def extract(data: bytes) -> tuple[float | np.ndarray, float]:
+        if len(data) < HEADER:
+            raise FieldError(f"field {path.text!r}: a {len(data)}-byte message")
+        order = ">" if data[1] == 0 else "<"
+        try:
+            pos = 0
+            for before, _ in steps:
+                for skip in before:
+                    pos = skip(data, pos, order)
+            values = read(data, pos, order)
+            return values, (stamp(data, 0, order) if stamp is not None else 0.0)
+        except struct.error:
+            raise FieldError(f"field {path.text!r}: the message ends before it") from None
+    return extract

@@ -1,0 +1,111 @@
+"""Reading a field straight from serialized messages (``cdr.raw_extractor``, the live node's
+fast path) gives exactly what the message objects give, for rclpy's own serialization."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hammer_ros.cdr import raw_extractor
+from hammer_ros.field_path import FieldError, message_stamp, parse_field_path, sample_extractor
+
+
+def messages():
+    from geometry_msgs.msg import TwistStamped
+    from sensor_msgs.msg import Imu, JointState
+    from std_msgs.msg import Float32MultiArray, Float64, Float64MultiArray, Int32, MultiArrayDimension
+
+    joint = JointState(name=["shoulder", "elbow_joint", "w"], position=[0.5, -1.5, 2.5], velocity=[0.25], effort=[])
+    joint.header.stamp.sec, joint.header.stamp.nanosec = 1_700_000_123, 250_000_000
+    joint.header.frame_id = "base_link_with_an_odd_length"
+    twist = TwistStamped()
+    twist.header.stamp.sec = 42
+    twist.twist.linear.x, twist.twist.angular.z = 0.75, -0.125
+    imu = Imu()
+    imu.header.frame_id = "imu"
+    imu.angular_velocity.z = 3.5
+    imu.orientation_covariance = np.arange(9.0)
+    labelled = Float64MultiArray(data=[1.0, 2.0, 3.0])
+    labelled.layout.dim = [MultiArrayDimension(label="xyz", size=3, stride=3)]
+    labelled.layout.data_offset = 7
+    return [
+        (Float64(data=2.5), ["data"]),
+        (Float64MultiArray(data=list(np.linspace(-1, 1, 100))), ["data", "data[:]", "data[0]", "data[-1]"]),
+        (Float64MultiArray(data=[]), ["data[:]"]),
+        (labelled, ["data[:]", "data[1]"]),
+        (Float32MultiArray(data=[1.5, -2.25]), ["data[:]", "data[1]"]),
+        (Int32(data=-7), ["data"]),
+        (joint, ["position[:]", "position[2]", "velocity[0]", "header.stamp"]),
+        (twist, ["twist.linear.x", "twist.angular.z", "header.stamp"]),
+        (imu, ["angular_velocity.z", "orientation_covariance[4]", "orientation_covariance[:]"]),
+    ]
+
+
+def test_raw_cdr_fields_equal_the_message_fields():
+    from rclpy.serialization import serialize_message
+
+    checked = 0
+    for msg, paths in messages():
+        data = serialize_message(msg)
+        for text in paths:
+            path = parse_field_path(text)
+            extract = raw_extractor(type(msg), path)
+            assert extract is not None, text
+            values, stamp = extract(data)
+            assert np.atleast_1d(values).tolist() == np.atleast_1d(sample_extractor(path)(msg)).tolist(), text
+            assert stamp == (message_stamp(msg) or 0.0), text
+            assert isinstance(values, float) or values.dtype == np.float64
+            checked += 1
+    assert checked == 21
+
+
+def test_big_endian_payloads_are_read_too():
+    import struct
+
+    from std_msgs.msg import Float64, Float64MultiArray
+
+    assert raw_extractor(Float64, parse_field_path("data"))(b"\x00\x00\x00\x00" + struct.pack(">d", -3.25))[0] == -3.25
+    data = b"\x00\x00\x00\x00" + struct.pack(">III", 0, 0, 2) + b"\0" * 4 + struct.pack(">dd", 1.5, 2.5)
+    values, _ = raw_extractor(Float64MultiArray, parse_field_path("data[:]"))(data)
+    assert values.tolist() == [1.5, 2.5]
+
+
+def test_what_raw_cdr_cannot_read_falls_back_to_messages():
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Bool, String
+
+    assert raw_extractor(JointState, parse_field_path("name[0]")) is None  # not numeric
+    assert raw_extractor(JointState, parse_field_path("speed")) is None  # no such field
+    assert raw_extractor(Bool, parse_field_path("data")) is None  # booleans: the message path decides
+    assert raw_extractor(String, parse_field_path("data")) is None
+
+
+def test_short_or_lying_payloads_are_field_errors():
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    joint = JointState(name=["a", "b"], position=[1.0, 2.0])
+    data = serialize_message(joint)
+    extract = raw_extractor(JointState, parse_field_path("position[1]"))
+    end = data.find(np.float64(2.0).tobytes()) + 8  # position[1] is whole from here on
+    for cut in range(len(data)):
+        if cut < end:
+            with pytest.raises(FieldError, match="'position\\[1\\]'"):
+                extract(data[:cut])
+        else:
+            assert extract(data[:cut])[0] == 2.0
+    lying = bytearray(serialize_message(Float64MultiArray(data=[1.0, 2.0])))
+    lying[12:16] = (10**6).to_bytes(4, "little")  # the data count claims a million doubles
+    with pytest.raises(FieldError, match="ends inside it"):
+        raw_extractor(Float64MultiArray, parse_field_path("data[:]"))(bytes(lying))
+    huge = b"\x00\x01\x00\x00" + (2**32 - 1).to_bytes(4, "little") + bytes(16)  # 4e9 layout dims claimed
+    with pytest.raises(FieldError, match="ends before it"):  # refused at once, not walked
+        raw_extractor(Float64MultiArray, parse_field_path("data[:]"))(huge)
+    rng = np.random.default_rng(4)
+    for _ in range(300):  # random bytes: values or a FieldError, nothing else
+        noise = rng.integers(0, 256, rng.integers(0, 64)).astype(np.uint8).tobytes()
+        try:
+            extract(noise)
+        except FieldError:
+            pass
