@@ -100,7 +100,7 @@ FULL = Plan(
     name="full", repeats=5, ingest_samples=1_000_000, ingest_taus=(50, 200), ingest_windows=(10_000, 100_000),
     ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
     node_rates={1: (1000.0, 2000.0, 5000.0, 7000.0, 10000.0, 12000.0, 14000.0, 20000.0),
-                100: (500.0, 1000.0, 2000.0, 5000.0, 6000.0, 7000.0, 10000.0, 14000.0)},
+                100: (500.0, 1000.0, 2000.0, 5000.0, 6000.0, 7000.0, 8500.0, 10000.0, 14000.0)},
     node_seconds=3.0, replay_messages={1: 100_000, 100: 10_000}, replay_repeats=3, solve_windows=(1000, 4000, 16000),
     solve_repeats=200, slow_solve_repeats=15, peer_frols=((3, 3, 15), (3, 4, 20), (3, 5, 30)),
     memory_windows=(10_000, 100_000, 1_000_000),
