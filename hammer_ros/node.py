@@ -382,7 +382,8 @@ class IdentificationNode(Node):
             total += n
         if not values:
             return None
-        if total == len(values) and all(type(x) is float for x in values):  # single samples
+        floats = [type(x) is float for x in values]
+        if total == len(values) and all(floats):  # single samples
             return np.array(firsts), np.array(values)
         counts = np.array(sizes)
         offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message
@@ -390,7 +391,7 @@ class IdentificationNode(Node):
         stamps = np.repeat(np.array(firsts), counts) + offsets / (self.stamper.rate or 1.0)
         for start, t in explicit:
             stamps[start:start + t.size] = t
-        return stamps, np.concatenate([np.atleast_1d(x) for x in values])
+        return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
 
     def _ingest_loop(self) -> None:
         while not self._stop.wait(FLUSH_PERIOD):

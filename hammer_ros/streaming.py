@@ -312,7 +312,12 @@ class _Stream:
     def values_at(self, grid: np.ndarray, tol: float, interpolation: str) -> np.ndarray:
         if interpolation == "linear":
             return np.interp(grid, self.t, self.x)
-        return self.x[np.searchsorted(self.t, grid + tol, side="right") - 1]
+        t, x = self.t, self.x
+        start = int(np.searchsorted(t, grid[0] + tol, side="right")) - 1
+        stamps = t[max(start, 0) : start + grid.size]
+        if start >= 0 and stamps.size == grid.size and np.all(np.abs(stamps - grid) <= tol):
+            return x[start : start + grid.size]  # a sample at every grid point: the hold is the samples
+        return x[np.searchsorted(t, grid + tol, side="right") - 1]
 
 
 FFT_MIN_TAU_MAX = 128  # from here on the lag products of a block are summed by FFT (faster than
