@@ -104,11 +104,15 @@ def test_model_poles_converge_to_the_plant(live):
 
 def test_diagnosis_of_the_window_is_published(live):
     """~/diagnosis: the plant is a clean Hammerstein system (dead zone, linear block, small
-    noise), so once the window holds diagnosis_window samples its diagnosis (of the newest
-    diagnosis_window of the 4000) must find nothing missing."""
-    full = live.wait_for(lambda: [d for d in live.diagnoses if d.get("samples") == NODE["diagnosis_window"]],
-                         timeout=60, what="a diagnosis of diagnosis_window samples")[-1]
-    assert max(d["samples"] for d in live.diagnoses) == NODE["diagnosis_window"] < NODE["window"]
+    noise), so once the window is full its diagnosis (of the newest diagnosis_window samples,
+    clear of the start of the record) must find nothing missing."""
+    live.wait_for(lambda: [m for m in live.models if m["samples"] == NODE["window"]], timeout=60,
+                  what="a model on a full window")
+    seen = len(live.diagnoses)  # the next diagnosis is of the newest samples of a full window
+    full = live.wait_for(lambda: live.diagnoses[seen:], timeout=3 * NODE["diagnosis_period"],
+                         what="a diagnosis of a full window")[-1]
+    assert full["samples"] == NODE["diagnosis_window"] < NODE["window"], full
+    assert max(d["samples"] for d in live.diagnoses) == NODE["diagnosis_window"]
     assert full["cause"] == "none", full
     assert full["extended"] is None and full["gain"] is None
     assert full["baseline"]["fit_percent"] > 80
