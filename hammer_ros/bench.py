@@ -37,7 +37,6 @@ import math
 import os
 import platform
 import pstats
-import resource
 import subprocess
 import sys
 import tempfile
@@ -641,11 +640,12 @@ def peer_section(frols: Sequence[tuple[int, int, int]], repeats: int) -> Section
 
 
 # ------------------------------------------------------------------------------------ 6 memory
-def _rss_kib(field_name: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
+def process_status_kib(field_name: str, pid: int | str = "self") -> int:
+    """A memory figure (kiB) of a process from /proc/<pid>/status: VmRSS, VmHWM (its peak), ..."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith(field_name + ":"):
             return int(line.split()[1])
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
 
 
 def memory_child(window: int, method: str = "cls-markov") -> dict:
@@ -657,16 +657,17 @@ def memory_child(window: int, method: str = "cls-markov") -> dict:
                           method=method)
     engine = StreamingEngine(config)
     rng = np.random.default_rng(5)
-    baseline = _rss_kib("VmRSS")
+    baseline = process_status_kib("VmRSS")
     for start in range(0, 2 * window, chunk):
         v = INPUT_STD * rng.standard_normal(chunk)
         t = (start + np.arange(chunk)) / SAMPLE_RATE
         engine.add_excitation(t, v)
         engine.add_response(t, plant(v))
-    ingest_peak = _rss_kib("VmHWM")
+    ingest_peak = process_status_kib("VmHWM")
     outcome = engine.solve()
     return {"window": window, "baseline_kib": baseline, "ingest_peak_kib": ingest_peak,
-            "solve_peak_kib": _rss_kib("VmHWM"), "solve_ok": outcome.ok, "solve_seconds": outcome.solve_seconds,
+            "solve_peak_kib": process_status_kib("VmHWM"), "solve_ok": outcome.ok,
+            "solve_seconds": outcome.solve_seconds,
             "reason": outcome.reason}
 
 

@@ -9,8 +9,8 @@ header whose second byte gives the byte order, then the fields in order, each pr
 aligned to its size relative to the end of that header, strings and sequences as a uint32
 count then their elements, nested messages inline, fixed arrays without a count.
 
-``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` as
-``field_path.sample_extractor`` gives them (a float, or a float64 array) and ``stamp`` the
+``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` the
+samples of ``field_path.extract_samples`` (a float for one, else a float64 array) and ``stamp`` the
 header stamp in seconds (0.0 for none), or None when the path cannot be read this way
 (wide strings, a non-numeric target): the caller then subscribes to messages as usual. A
 payload that is short or whose counts lie raises FieldError naming the field.
@@ -166,28 +166,25 @@ def raw_extractor(cls, path: FieldPath) -> Callable[[bytes], tuple[float | np.nd
     """``extract(data) -> (values, stamp)`` for serialized messages of ``cls`` (see the module
     docstring), or None when ``path`` is not readable from raw CDR here."""
     try:
-        steps: list[tuple[list[Skip], Any]] = []  # per nesting level: skips before the field
+        skips: list[Skip] = []  # the fields before the path's field, level by level
         current = cls
         for i, step in enumerate(path.steps):
             fields = current.get_fields_and_field_types()
             if step.name not in fields:
                 return None
             names = list(fields)
-            before = [_skipper(fields[n]) for n in names[: names.index(step.name)]]
+            skips += [_skipper(fields[n]) for n in names[: names.index(step.name)]]
             if i < len(path.steps) - 1:
-                kind, what, count = _kind(fields[step.name])
+                kind, current, count = _kind(fields[step.name])
                 if kind != "message" or count is not None or step.indices:
                     return None
-                steps.append((before, None))
-                current = what
             else:
-                steps.append((before, _reader(fields[step.name], step.indices, path)))
+                read = _reader(fields[step.name], step.indices, path)
+        fields = cls.get_fields_and_field_types()
         stamp = _reader("builtin_interfaces/Time", (), path) \
-            if cls.get_fields_and_field_types().get("header") == "std_msgs/Header" \
-            and next(iter(cls.get_fields_and_field_types())) == "header" else None
+            if next(iter(fields), None) == "header" and fields["header"] == "std_msgs/Header" else None
     except (UnsupportedLayout, ImportError, AttributeError):
         return None
-    read = steps[-1][1]
 
     def extract(data: bytes) -> tuple[float | np.ndarray, float]:
         if len(data) < HEADER:
@@ -195,9 +192,8 @@ def raw_extractor(cls, path: FieldPath) -> Callable[[bytes], tuple[float | np.nd
         order = ">" if data[1] == 0 else "<"
         try:
             pos = 0
-            for before, _ in steps:
-                for skip in before:
-                    pos = skip(data, pos, order)
+            for skip in skips:
+                pos = skip(data, pos, order)
             values = read(data, pos, order)
             return values, (stamp(data, 0, order) if stamp is not None else 0.0)
         except struct.error:

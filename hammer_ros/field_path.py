@@ -13,9 +13,7 @@ applies it.
 
 from __future__ import annotations
 
-import array
 import re
-from collections.abc import Callable
 from dataclasses import dataclass
 from numbers import Real
 from typing import Any
@@ -137,38 +135,6 @@ def extract_samples(msg: Any, path: FieldPath) -> np.ndarray:
         for index in step.indices:
             value = _index(value, index, path, step.name)
     return _to_float_array(value, path)
-
-
-def sample_extractor(path: FieldPath) -> Callable[[Any], float | np.ndarray]:
-    """``extract_samples(msg, path)`` specialised for the live node's per-message callback:
-    plain attribute access and indexing, a float field returned as a Python float (one sample),
-    a float64 array (``array.array('d')`` or numpy) as a float64 view without a copy. Anything
-    else - dicts, other element types, a missing field - goes through ``extract_samples``, so
-    the values and the FieldError naming the field are the same."""
-    steps = tuple((step.name, step.indices) for step in path.steps)
-
-    def extract(msg: Any) -> float | np.ndarray:
-        value = msg
-        try:
-            for name, indices in steps:
-                value = getattr(value, name)
-                for index in indices:
-                    if index is not None:
-                        value = value[index]
-                    elif type(value) is not array.array and type(value) is not np.ndarray:
-                        raise TypeError  # [:] of something else: the general path decides
-            kind = type(value)
-            if kind is float:
-                return value
-            if kind is array.array and value.typecode == "d":
-                return np.frombuffer(value, dtype=np.float64)
-            if kind is np.ndarray and value.dtype == np.float64:
-                return value.ravel()
-        except Exception:
-            pass
-        return extract_samples(msg, path)
-
-    return extract
 
 
 def message_stamp(msg: Any) -> float | None:

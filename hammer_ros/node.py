@@ -53,7 +53,7 @@ from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E40
 from .bag_io import ResultWriter, node_topic  # noqa: E402
 from .cdr import raw_extractor  # noqa: E402
 from .errors import UsageError  # noqa: E402
-from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path, sample_extractor  # noqa: E402
+from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .methods import METHODS  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
@@ -229,8 +229,7 @@ class _Input:
         self.name = name
         self.subscription = None
         self.path: FieldPath | None = None
-        self.extract = None  # sample_extractor(path): a float (one sample) or a float array per message
-        self.raw = None  # cdr.raw_extractor(type, path): the same (and the stamp) from serialized messages
+        self.raw = None  # cdr.raw_extractor(type, path): samples and stamp from serialized messages
         self.field_errors = 0
         self.last_error = ""
         self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
@@ -304,7 +303,6 @@ class IdentificationNode(Node):
             self.destroy_subscription(source.subscription)
         cls = message_class(self.values[f"{stream}_type"])
         source.path = parse_field_path(self.values[f"{stream}_field"])
-        source.extract = sample_extractor(source.path)
         source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
@@ -324,7 +322,7 @@ class IdentificationNode(Node):
             if source.raw is not None:
                 values, stamp = source.raw(msg)
             else:
-                values, stamp = source.extract(msg), message_stamp(msg) or 0.0
+                values, stamp = extract_samples(msg, source.path), message_stamp(msg) or 0.0
         except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
             source.field_errors += 1
             source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
@@ -383,7 +381,7 @@ class IdentificationNode(Node):
         if not values:
             return None
         floats = [type(x) is float for x in values]
-        if total == len(values) and all(floats):  # single samples
+        if all(floats):  # single samples
             return np.array(firsts), np.array(values)
         counts = np.array(sizes)
         offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message

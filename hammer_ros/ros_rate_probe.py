@@ -20,7 +20,6 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -171,13 +170,6 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
     return {"subscriber": "hammer_ros node", "received": received, "aligned": int(latest.get("aligned", 0)), **sent}
 
 
-def _status_kib(pid: int, field_name: str) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith(field_name + ":"):
-            return int(line.split()[1])
-    raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
-
-
 def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
     """Resident memory of a fresh ``hammer-ros node`` (window W, cls-markov, 1 solve/s, a
     diagnosis every 2 s) idle after startup, and its peak (VmHWM) once a Hammerstein record
@@ -192,6 +184,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         from rclpy.signals import SignalHandlerOptions
         from std_msgs.msg import String
 
+        from .bench import process_status_kib
         from .node import PARAMETERS
 
         context = rclpy.Context()  # its own context and no signal handlers: callable from any process
@@ -209,7 +202,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         try:
             if not _spin_until(executor, lambda: bool(latest), MATCH_TIMEOUT):
                 raise RuntimeError("the node published no diagnostics")
-            idle = _status_kib(ident.pid, "VmRSS")
+            idle = process_status_kib("VmRSS", ident.pid)
             seconds = 1.2 * window / (rate * batch) + 1.0
             publisher = _start_publisher(env, rate, seconds, batch, plant=True)
             full = lambda: int(latest.get("window_samples", 0)) >= window  # noqa: E731
@@ -221,7 +214,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             solves = attempts()
             done = _spin_until(executor, lambda: attempts() >= solves + 2 and max(diagnoses, default=0) >= diagnosed,
                                120)
-            peak = _status_kib(ident.pid, "VmHWM")
+            peak = process_status_kib("VmHWM", ident.pid)
             _finish(publisher)
         finally:
             ident.terminate()

@@ -21,7 +21,7 @@ from hammer_ros.bag_io import (
     stream_specs,
 )
 from hammer_ros.errors import UsageError
-from hammer_ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path, sample_extractor
+from hammer_ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 from hammer_ros.linear import root_rss_error
 from hammer_ros.methods import IdentifyOptions, identify
 
@@ -71,35 +71,6 @@ def test_field_errors_name_the_field(path, message):
     with pytest.raises(FieldError, match=f"^field {re.escape(repr(path))}: ") as err:
         extract_samples(joint, parse_field_path(path))
     assert message in str(err.value) and "\n" not in str(err.value)
-    with pytest.raises(FieldError) as fast:  # the node's per-message extractor: the same error
-        sample_extractor(parse_field_path(path))(joint)
-    assert str(fast.value) == str(err.value)
-
-
-def test_the_node_extractor_gives_what_extract_samples_gives():
-    """sample_extractor (the live node's fast path): a float field is one Python float, a
-    float64 array a view of the message's buffer; everything else as extract_samples."""
-    from geometry_msgs.msg import TwistStamped
-    from sensor_msgs.msg import JointState
-    from std_msgs.msg import Float32MultiArray, Float64, Float64MultiArray, Int32
-
-    joint = JointState(name=["a"], velocity=[0.5, -1.5, 2.5], effort=[1.0])
-    joint.header.stamp.sec = 3
-    twist = TwistStamped()
-    twist.twist.angular.z = -0.25
-    cases = [(joint, "velocity[1]"), (joint, "velocity[-1]"), (joint, "velocity[:]"), (joint, "velocity"),
-             (joint, "effort[:]"), (joint, "header.stamp"), (twist, "twist.angular.z"), (Float64(data=2.5), "data"),
-             (Float64MultiArray(data=[1.0, 2.0]), "data[:]"), (Float32MultiArray(data=[1.5, 2.5]), "data[:]"),
-             (Int32(data=7), "data"), ({"data": [1, 2]}, "data[:]")]
-    for msg, text in cases:
-        path = parse_field_path(text)
-        fast = sample_extractor(path)(msg)
-        assert np.atleast_1d(fast).tolist() == extract_samples(msg, path).tolist(), text
-        assert isinstance(fast, float) or (isinstance(fast, np.ndarray) and fast.dtype == np.float64), text
-    assert type(sample_extractor(parse_field_path("data"))(Float64(data=2.5))) is float
-    batch = Float64MultiArray(data=[1.0, 2.0, 3.0])
-    view = sample_extractor(parse_field_path("data[:]"))(batch)
-    assert not view.flags.owndata and view.tolist() == [1.0, 2.0, 3.0]  # no copy per message
 
 
 @pytest.mark.parametrize("text", ["", "velocity[", "a..b", "data[x]", "2x", "data[:][:]"])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hammer_ros.cdr import raw_extractor
-from hammer_ros.field_path import FieldError, message_stamp, parse_field_path, sample_extractor
+from hammer_ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 
 def messages():
@@ -43,6 +43,7 @@ def messages():
 
 def test_raw_cdr_fields_equal_the_message_fields():
     from rclpy.serialization import serialize_message
+    from std_msgs.msg import Float64, Float64MultiArray
 
     checked = 0
     for msg, paths in messages():
@@ -52,11 +53,15 @@ def test_raw_cdr_fields_equal_the_message_fields():
             extract = raw_extractor(type(msg), path)
             assert extract is not None, text
             values, stamp = extract(data)
-            assert np.atleast_1d(values).tolist() == np.atleast_1d(sample_extractor(path)(msg)).tolist(), text
+            assert np.atleast_1d(values).tolist() == extract_samples(msg, path).tolist(), text
             assert stamp == (message_stamp(msg) or 0.0), text
             assert isinstance(values, float) or values.dtype == np.float64
             checked += 1
     assert checked == 21
+    batch = serialize_message(Float64MultiArray(data=[1.0, 2.0, 3.0]))
+    view, _ = raw_extractor(Float64MultiArray, parse_field_path("data[:]"))(batch)
+    assert not view.flags.owndata and view.tolist() == [1.0, 2.0, 3.0]  # no copy per message
+    assert type(raw_extractor(Float64, parse_field_path("data"))(serialize_message(Float64(data=2.5)))[0]) is float
 
 
 def test_big_endian_payloads_are_read_too():
