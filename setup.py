@@ -56,7 +56,7 @@ setup(
     entry_points={
         "console_scripts": [
             "hammer-ros = hammer_ros.cli:main",
-            "hammer_ros_node = hammer_ros.node:main",
+            "hammer_ros_node = hammer_ros.ros.node:main",
         ],
     },
 )

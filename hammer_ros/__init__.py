@@ -1,7 +1,17 @@
 """hammer_ros: online identification of Hammerstein systems for ROS 2.
 
-The numerical core (every module except ``node``, ``plant_node``, ``ros_*``, ``demo``
-and the CLI/bag adapters) imports only numpy/scipy and never rclpy.
+Layers, each a subpackage whose docstring says what it may import:
+
+- ``identification``: the papers' methods and the linear/static-map/regression pieces (numpy/scipy);
+- ``streaming``: the streaming engine (numpy);
+- ``diagnosis``: what the model gets wrong, why, and the extended model;
+- ``io``: MCAP/rosbag2 bags, CSV/NPZ records;
+- ``ros``: everything that imports rclpy or ROS message packages (the node, its messages);
+- ``cli``: the ``hammer-ros`` command line;
+- ``tools``: bench, reproduce, demo.
+
+Nothing outside ``ros`` (and the tools that start nodes) imports rclpy: ``pip install .`` without
+the ``ros`` extra gives the core, ``identify``, ``diagnose``, ``reproduce`` and ``replay``.
 """
 
 import os

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hammer_ros.linear import LinearModel
-from hammer_ros.ros_env import DomainLease
+from hammer_ros.identification.linear import LinearModel
+from hammer_ros.ros.environment import DomainLease
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent

@@ -18,7 +18,7 @@ from hammer_ros.diagnosis import generators
 from hammer_ros.diagnosis.causes import CAUSES
 from hammer_ros.diagnosis.diagnose import diagnose
 from hammer_ros.diagnosis.split import split_record
-from hammer_ros.linear import LinearModel
+from hammer_ros.identification.linear import LinearModel
 
 generators_nonlinearity = generators.random_nonlinearity
 

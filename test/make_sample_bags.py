@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hammer_ros.bag_io import ResultWriter
-from hammer_ros.linear import LinearModel
-from hammer_ros.simulate import add_noise, simulate_hammerstein
+from hammer_ros.identification.linear import LinearModel
+from hammer_ros.identification.simulate import add_noise, simulate_hammerstein
+from hammer_ros.io.bags import ResultWriter
 
 START_NS = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z
 RATE = 100.0

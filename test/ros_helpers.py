@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from hammer_ros.demo import ros_arguments
+from hammer_ros.tools.demo import ros_arguments
 
 WAIT = 30.0  # s: generous bound for anything that normally takes < 2 s on a loaded 2-core machine
 STOP_TIMEOUT = 10.0

@@ -11,8 +11,8 @@ import numpy as np
 from conftest import G1
 from ros_helpers import Listener
 
-from hammer_ros.linear import root_rss_error
-from hammer_ros.simulate import HammersteinStream
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.simulate import HammersteinStream
 
 RATE = 200.0
 WINDOW = 2000

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from conftest import G1, REPO
 
-from hammer_ros import bag_io
-from hammer_ros.bag_io import message_definition
 from hammer_ros.cli import main
-from hammer_ros.linear import root_rss_error
-from hammer_ros.simulate import simulate_hammerstein
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.simulate import simulate_hammerstein
+from hammer_ros.io import bags as bag_io
+from hammer_ros.io.bags import message_definition
 
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")
 JOINT_BAG = REPO / "bags" / "joint_state_saturation"

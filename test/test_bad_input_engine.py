@@ -8,12 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hammer_ros import streaming
 from hammer_ros.errors import UsageError
-from hammer_ros.linear import root_rss_error
-from hammer_ros.outputs import diagnostics_message, result_messages, stale_model_message
-from hammer_ros.simulate import HammersteinStream
-from hammer_ros.streaming import MAX_TAU_MAX, MAX_WINDOW, EngineConfig, StreamingEngine
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.simulate import HammersteinStream
+from hammer_ros.ros.outputs import diagnostics_message, result_messages, stale_model_message
+from hammer_ros.streaming import config as streaming_config
+from hammer_ros.streaming import correlation_window
+from hammer_ros.streaming import engine as streaming_engine
+from hammer_ros.streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig
+from hammer_ros.streaming.engine import StreamingEngine
 
 RATE = 100.0
 CONFIG = EngineConfig(sample_rate=RATE, window=2000, tau_max=60, order=3, delay=1)
@@ -133,12 +136,12 @@ def test_a_million_sample_batch_is_aligned_without_overflow(g1):
 def test_a_flood_on_one_stream_is_bounded_and_counted(g1):
     """The response stalls: the excitation's pending samples are capped (oldest dropped, counted)."""
     engine = StreamingEngine(CONFIG)
-    n = streaming.PENDING_SAMPLES + 50_000
+    n = streaming_config.PENDING_SAMPLES + 50_000
     t = 10.0 + np.arange(n) / RATE
     engine.add_response(t[:10], np.zeros(10))
     for part in np.array_split(np.arange(n), 100):  # in many messages: linear cost, not quadratic
         engine.add_excitation(t[part], np.ones(part.size))
-    assert engine.stats.overflow == n - 9 - streaming.PENDING_SAMPLES  # 9 consumed by the 10 grid points
+    assert engine.stats.overflow == n - 9 - streaming_config.PENDING_SAMPLES  # 9 consumed by the 10 grid points
     assert engine.stats.aligned <= 10
 
 
@@ -151,7 +154,7 @@ def test_an_exception_inside_a_solve_is_counted_and_loses_nothing(g1, monkeypatc
     def broken(*args, **kwargs):
         raise RuntimeError("bug in a method")
 
-    monkeypatch.setattr(streaming, "identify", broken)
+    monkeypatch.setattr(streaming_engine, "identify", broken)
     outcome = engine.solve()
     assert not outcome.ok and outcome.status == "exception" and "RuntimeError: bug in a method" in outcome.reason
     assert engine.stats.solve_exceptions == 1
@@ -217,7 +220,7 @@ def test_big_windows_are_recomputed_in_bounded_memory():
     (a W x (2 tau_max + 1) lag matrix would be 0.8 GB at W = 200 000, tau_max = 250)."""
     rng = np.random.default_rng(2)
     v, y = rng.normal(size=200_000), rng.normal(size=200_000)
-    sums = streaming._lag_products(v, y, 250)
+    sums = correlation_window._lag_products(v, y, 250)
     centre = v[250:-250]
     np.testing.assert_allclose(sums[0, 250], centre @ centre, rtol=1e-12)
     np.testing.assert_allclose(sums[1, 250 + 3], y[250:-250] @ v[247:-253], rtol=1e-9)

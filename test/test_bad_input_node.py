@@ -13,7 +13,7 @@ import pytest
 from ros_helpers import Listener, RosProcess
 from stamped_plant import NODE, RATE, WINDOW, Observer, StampedPlant, pole_error
 
-from hammer_ros.ros_env import DomainLease, child_environment
+from hammer_ros.ros.environment import DomainLease, child_environment
 
 pytestmark = pytest.mark.ros
 
@@ -25,7 +25,7 @@ def rig(tmp_path_factory):
     logs = tmp_path_factory.mktemp("bad_input_node")
     with DomainLease() as lease:
         env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
-        node = RosProcess("hammer_ros.node", NODE, env, logs / "node.log")
+        node = RosProcess("hammer_ros.ros.node", NODE, env, logs / "node.log")
         listener = Listener(env)
         try:
             listener.observer = Observer(listener)

@@ -12,7 +12,10 @@ import yaml
 from make_sample_bags import G1, RESONANT, cubic_record, saturation_record
 from make_sample_bags import main as make_sample_bags
 
-from hammer_ros.bag_io import (
+from hammer_ros.errors import UsageError
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.io.bags import (
     bag_files,
     engine_config_from_params,
     load_bag_record,
@@ -20,10 +23,7 @@ from hammer_ros.bag_io import (
     message_definition,
     stream_specs,
 )
-from hammer_ros.errors import UsageError
-from hammer_ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
-from hammer_ros.linear import root_rss_error
-from hammer_ros.methods import IdentifyOptions, identify
+from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 REPO = Path(__file__).resolve().parents[1]
 FLOAT64_BAG = REPO / "bags" / "float64_cubic_g1.mcap"

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 
-from hammer_ros import bench
-from hammer_ros.correlation import cross_correlation, weighted_cross_correlation
+from hammer_ros.identification.correlation import cross_correlation, weighted_cross_correlation
+from hammer_ros.tools import bench
 
 TINY = bench.Plan(
     name="tiny", repeats=1, ingest_samples=6000, ingest_taus=(5, 20), ingest_windows=(1000, 3000),

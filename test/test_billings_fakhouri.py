@@ -11,15 +11,15 @@ import sys
 import numpy as np
 import pytest
 
-from hammer_ros.correlation import cross_correlation, second_order_cross_correlation
 from hammer_ros.errors import IdentificationError
-from hammer_ros.excitation import gaussian_white_noise
-from hammer_ros.linear import LinearModel, root_rss_error
-from hammer_ros.methods import IdentifyOptions, identify
-from hammer_ros.reproduce import bf
-from hammer_ros.result import fit_percent
-from hammer_ros.simulate import add_noise, simulate_hammerstein, simulate_parallel
-from hammer_ros.static_maps import PolynomialMap
+from hammer_ros.identification.correlation import cross_correlation, second_order_cross_correlation
+from hammer_ros.identification.excitation import gaussian_white_noise
+from hammer_ros.identification.linear import LinearModel, root_rss_error
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.identification.result import fit_percent
+from hammer_ros.identification.simulate import add_noise, simulate_hammerstein, simulate_parallel
+from hammer_ros.identification.static_maps import PolynomialMap
+from hammer_ros.tools.reproduce import bf
 
 FEEDFORWARD = IdentifyOptions(order=2, delay=1, poly=4)
 

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hammer_ros.cdr import raw_extractor
-from hammer_ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
+from hammer_ros.ros.cdr import raw_extractor
+from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 
 def messages():

@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 
 from hammer_ros.cli import main as cli_main
-from hammer_ros.correlation_least_squares import (
+from hammer_ros.errors import IdentificationError
+from hammer_ros.identification.correlation_least_squares import (
     bai_two_stage_nls,
     correlation_least_squares,
     gain_correction,
     linear_estimate,
     standard_least_squares,
 )
-from hammer_ros.errors import IdentificationError
-from hammer_ros.linear import root_rss_error
-from hammer_ros.methods import IdentifyOptions, identify
-from hammer_ros.reproduce import cls as tables
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.tools.reproduce import cls as tables
 
 RUNS = 30
 SEED = 2024

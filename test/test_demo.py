@@ -55,10 +55,11 @@ def _resolve(message: dict, path: str):
 
 
 def test_dashboard_layout_plots_fields_the_node_publishes():
-    from hammer_ros.outputs import OUTPUT_TOPICS, diagnostics_message, result_messages
-    from hammer_ros.plant_node import DEMO_PLANT, static_map
-    from hammer_ros.simulate import simulate_hammerstein
-    from hammer_ros.streaming import EngineConfig, StreamingEngine
+    from hammer_ros.identification.simulate import simulate_hammerstein
+    from hammer_ros.ros.outputs import OUTPUT_TOPICS, diagnostics_message, result_messages
+    from hammer_ros.ros.plant_node import DEMO_PLANT, static_map
+    from hammer_ros.streaming.config import EngineConfig
+    from hammer_ros.streaming.engine import StreamingEngine
 
     layout = json.loads((REPO / "hammer_ros" / "dashboard" / "foxglove_layout.json").read_text())
     v = 0.5 * np.random.default_rng(1).standard_normal(3000)

@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 
 from hammer_ros.cli import main
-from hammer_ros.data_io import load_record
 from hammer_ros.diagnosis.causes import CAUSES
 from hammer_ros.diagnosis.diagnose import diagnose, diagnose_record
 from hammer_ros.diagnosis.generators import generate_case
 from hammer_ros.diagnosis.report import render_report
 from hammer_ros.diagnosis.residual_tests import bartlett_cross_sigma, correlation
 from hammer_ros.diagnosis.split import Split, split_record
-from hammer_ros.simulate import play_operator
+from hammer_ros.identification.simulate import play_operator
+from hammer_ros.io.records import load_record
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO / "hammer_ros" / "data"
@@ -186,7 +186,7 @@ def test_cascaded_tanks_beats_the_best_linear_approximation():
 def _dead_time_record(dead_time: int, seed: int, sensor=None):
     """Order 2 with a zero, relative degree 1, then ``dead_time`` samples of transport delay;
     a saturation ahead of it; 1 % output noise; 4000 samples."""
-    from hammer_ros.linear import LinearModel
+    from hammer_ros.identification.linear import LinearModel
 
     rng = np.random.default_rng(seed)
     g = LinearModel.from_zeros_poles([0.5], [0.8 + 0.3j, 0.8 - 0.3j], dc_gain=1.5)

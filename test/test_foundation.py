@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hammer_ros.correlation import auto_correlation, cross_correlation
-from hammer_ros.data_io import load_record
 from hammer_ros.errors import UsageError
-from hammer_ros.linear import root_rss_error
-from hammer_ros.regression import build_regression, solve_least_squares
+from hammer_ros.identification.correlation import auto_correlation, cross_correlation
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.regression import build_regression, solve_least_squares
+from hammer_ros.io.records import load_record
 
 REPO = Path(__file__).resolve().parents[1]
-ROS_EDGE_MODULES = {"node", "plant_node", "demo", "replay", "bag_io", "ros_fields", "ros_messages", "bench",
-                    "ros_rate_probe"}
+ROS_EDGE_MODULES = {"node", "plant_node", "demo", "live_publisher", "replay", "bag_io", "ros_fields", "ros_messages",
+                    "bench", "ros_rate_probe"}
 
 
 def test_g1_matches_paper(g1):
@@ -108,8 +108,8 @@ def test_cli_user_errors_exit_2_with_one_line(tmp_path, argv, needle):
 
 
 def test_result_json_flags_an_unstable_model(g1):
-    from hammer_ros.linear import LinearModel
-    from hammer_ros.result import IdentificationResult
+    from hammer_ros.identification.linear import LinearModel
+    from hammer_ros.identification.result import IdentificationResult
 
     unstable = LinearModel([0.0, 1.0], [1.0, -1.1])
     for linear, expected in ((g1, True), (unstable, False)):

@@ -13,8 +13,8 @@ import pytest
 from conftest import REPO
 from ros_helpers import Listener, RosProcess
 
-from hammer_ros.linear import root_rss_error
-from hammer_ros.ros_env import DomainLease, child_environment
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.ros.environment import DomainLease, child_environment
 
 pytestmark = pytest.mark.ros
 
@@ -35,8 +35,8 @@ def live(tmp_path_factory):
     logs = tmp_path_factory.mktemp("live")
     with DomainLease() as lease:
         env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
-        plant = RosProcess("hammer_ros.plant_node", PLANT, env, logs / "plant.log")
-        node = RosProcess("hammer_ros.node", NODE, env, logs / "node.log")
+        plant = RosProcess("hammer_ros.ros.plant_node", PLANT, env, logs / "plant.log")
+        node = RosProcess("hammer_ros.ros.node", NODE, env, logs / "node.log")
         listener = Listener(env)
         listener.truth = listener.subscribe_json("/plant/truth")
         listener.models = listener.subscribe_json("/hammer_ros/model")
@@ -167,9 +167,9 @@ def test_late_joining_subscriber_gets_the_latest_model(live):
 def test_bad_messages_are_counted_and_sigint_exits_cleanly(ros_env, tmp_path):
     """JointState without velocity: every response message fails its field path; the node
     reports it in /diagnostics, keeps running, and SIGINT stops it with exit code 0."""
-    plant = RosProcess("hammer_ros.plant_node", {"rate": 200.0, "message_type": "joint_state"}, ros_env,
+    plant = RosProcess("hammer_ros.ros.plant_node", {"rate": 200.0, "message_type": "joint_state"}, ros_env,
                        tmp_path / "plant.log")
-    node = RosProcess("hammer_ros.node", {
+    node = RosProcess("hammer_ros.ros.node", {
         "excitation_type": "sensor_msgs/msg/JointState", "excitation_field": "position[0]",
         "response_type": "sensor_msgs/msg/JointState", "response_field": "velocity[0]", "solve_rate": 5.0},
         ros_env, tmp_path / "node.log")
@@ -192,7 +192,7 @@ def test_bad_messages_are_counted_and_sigint_exits_cleanly(ros_env, tmp_path):
 def test_params_file_configures_the_node_and_sigterm_exits_cleanly(ros_env, tmp_path):
     log = tmp_path / "node.log"
     with open(log, "w") as out:
-        node = subprocess.Popen([sys.executable, "-m", "hammer_ros.node", "--ros-args", "--params-file",
+        node = subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file",
                                  str(REPO / "msg_config" / "float64_example.yaml"), "-p", "window:=3000"],
                                 env=ros_env, stdout=out, stderr=subprocess.STDOUT)
     listener = Listener(ros_env)
@@ -211,7 +211,7 @@ def test_params_file_configures_the_node_and_sigterm_exits_cleanly(ros_env, tmp_
     (["-p", "response_field:=twist.linear.x"], "twist"),
 ])
 def test_bad_startup_configuration_exits_2_with_one_line(ros_env, args, needle):
-    done = subprocess.run([sys.executable, "-m", "hammer_ros.node", "--ros-args", *args], env=ros_env,
+    done = subprocess.run([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", *args], env=ros_env,
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     assert needle in done.stderr and "Traceback" not in done.stderr

@@ -11,9 +11,9 @@ import pytest
 
 from hammer_ros.cli import main as cli_main
 from hammer_ros.errors import IdentificationError
-from hammer_ros.linear import LinearModel
-from hammer_ros.methods import IdentifyOptions, identify
-from hammer_ros.piecewise_linear_ls import (
+from hammer_ros.identification.linear import LinearModel
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.identification.piecewise_linear_ls import (
     default_partition,
     default_primary_index,
     drop_empty_intervals,
@@ -25,11 +25,11 @@ from hammer_ros.piecewise_linear_ls import (
     point_slope_map,
     refine_partition,
 )
-from hammer_ros.regression import solve_least_squares
-from hammer_ros.reproduce import plls as paper
-from hammer_ros.result import rms_error
-from hammer_ros.simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
-from hammer_ros.static_maps import PiecewiseLinearMap
+from hammer_ros.identification.regression import solve_least_squares
+from hammer_ros.identification.result import rms_error
+from hammer_ros.identification.simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
+from hammer_ros.identification.static_maps import PiecewiseLinearMap
+from hammer_ros.tools.reproduce import plls as paper
 
 RUNS = 100  # the paper's Monte Carlo count (~3 s with single-threaded BLAS)
 

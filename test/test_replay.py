@@ -14,7 +14,7 @@ import pytest
 from make_sample_bags import G1, RESONANT
 
 from hammer_ros.cli import main
-from hammer_ros.linear import root_rss_error
+from hammer_ros.identification.linear import root_rss_error
 
 REPO = Path(__file__).resolve().parents[1]
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 
 from hammer_ros.errors import IdentificationError
-from hammer_ros.excitation import gaussian_white_noise, sine
-from hammer_ros.linear import LinearModel
-from hammer_ros.methods import IdentifyOptions, identify
-from hammer_ros.reproduce.semiparametric import EXAMPLES, rows
-from hammer_ros.semiparametric import (
+from hammer_ros.identification.excitation import gaussian_white_noise, sine
+from hammer_ros.identification.linear import LinearModel
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.identification.semiparametric import (
     harmonic_period,
     map_error,
     minimum_phase_counterpart,
@@ -23,7 +22,8 @@ from hammer_ros.semiparametric import (
     semiparametric,
     symmetry_error,
 )
-from hammer_ros.simulate import simulate_hammerstein
+from hammer_ros.identification.simulate import simulate_hammerstein
+from hammer_ros.tools.reproduce.semiparametric import EXAMPLES, rows
 
 HAMMER = [str(Path(sys.executable).parent / "hammer-ros")]
 

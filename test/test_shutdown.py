@@ -18,7 +18,7 @@ from conftest import REPO
 from ros_helpers import WAIT, Listener, RosProcess
 from stamped_plant import NODE, WINDOW, Observer, StampedPlant, pole_error
 
-from hammer_ros.ros_env import DomainLease, child_environment
+from hammer_ros.ros.environment import DomainLease, child_environment
 
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")
 JOINT_BAG = REPO / "bags" / "joint_state_saturation"
@@ -107,7 +107,7 @@ def test_sigterm_to_the_node_finishes_its_output_mcap_with_the_final_model(tmp_p
     out = tmp_path / "node_results.mcap"
     with DomainLease() as lease:
         env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
-        node = RosProcess("hammer_ros.node", {**NODE, "output_mcap": str(out)}, env, logs / "node.log")
+        node = RosProcess("hammer_ros.ros.node", {**NODE, "output_mcap": str(out)}, env, logs / "node.log")
         listener = Listener(env)
         try:
             observer = Observer(listener)
@@ -138,7 +138,7 @@ def test_sigterm_to_the_node_finishes_its_output_mcap_with_the_final_model(tmp_p
 
 
 def test_a_node_that_cannot_write_its_output_mcap_exits_2_at_startup(ros_env, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "hammer_ros.node", "--ros-args", "-p",
+    proc = subprocess.run([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "-p",
                            f"output_mcap:={tmp_path}/missing/dir/out.mcap"], env=ros_env, capture_output=True,
                           text=True, timeout=WAIT)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr

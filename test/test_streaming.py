@@ -6,13 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hammer_ros.correlation import cross_correlation, weighted_cross_correlation
-from hammer_ros.correlation_least_squares import cls_from_correlations
 from hammer_ros.errors import UsageError
-from hammer_ros.linear import root_rss_error
-from hammer_ros.methods import identify
-from hammer_ros.simulate import simulate_hammerstein
-from hammer_ros.streaming import FFT_MIN_TAU_MAX, EngineConfig, StreamingEngine
+from hammer_ros.identification.correlation import cross_correlation, weighted_cross_correlation
+from hammer_ros.identification.correlation_least_squares import cls_from_correlations
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.methods import identify
+from hammer_ros.identification.simulate import simulate_hammerstein
+from hammer_ros.streaming.config import EngineConfig
+from hammer_ros.streaming.correlation_window import FFT_MIN_TAU_MAX
+from hammer_ros.streaming.engine import StreamingEngine
 
 
 def cubic(v):

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..result import fit_percent, rms_error, strict_json
+from ..identification.result import fit_percent, rms_error, strict_json
 from .evidence import (
     CauseTest,
     LineTest,

@@ -30,9 +30,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, signal, stats
 
-from ..correlation import centred_square, cross_correlation, second_order_cross_correlation
-from ..piecewise_linear_ls import interval_index
-from ..regression import lagged_columns, solve_least_squares
+from ..identification.correlation import centred_square, cross_correlation, second_order_cross_correlation
+from ..identification.piecewise_linear_ls import interval_index
+from ..identification.regression import lagged_columns, solve_least_squares
 from .hammerstein import HammersteinModel
 from .residual_tests import Evidence
 

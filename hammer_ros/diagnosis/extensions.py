@@ -15,12 +15,18 @@ import numpy as np
 from scipy import signal
 from scipy.optimize import minimize_scalar
 
-from ..billings_fakhouri import identify_feedforward
 from ..errors import IdentificationError
-from ..linear import LinearModel
-from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map, rank_one_factors
-from ..regression import build_regression, solve_least_squares
-from ..simulate import play_operator, simulate_hammerstein_feedback
+from ..identification.billings_fakhouri import identify_feedforward
+from ..identification.linear import LinearModel
+from ..identification.piecewise_linear_ls import (
+    drop_empty_intervals,
+    plls,
+    point_slope_basis,
+    point_slope_map,
+    rank_one_factors,
+)
+from ..identification.regression import build_regression, solve_least_squares
+from ..identification.simulate import play_operator, simulate_hammerstein_feedback
 from .causes import EXTENSION
 from .evidence import LineTest, WindowTest
 from .hammerstein import (

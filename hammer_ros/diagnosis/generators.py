@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from ..linear import LinearModel
-from ..simulate import play_operator, simulate_hammerstein_feedback
+from ..identification.linear import LinearModel
+from ..identification.simulate import play_operator, simulate_hammerstein_feedback
 from .causes import CAUSES
 
 PREROLL = 400  # samples simulated and dropped so that every record starts in steady motion

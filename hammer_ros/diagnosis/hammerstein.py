@@ -20,11 +20,17 @@ import numpy as np
 from scipy import linalg, signal, stats
 
 from ..errors import IdentificationError
-from ..linear import LinearModel
-from ..piecewise_linear_ls import drop_empty_intervals, plls, point_slope_basis, point_slope_map, rank_one_factors
-from ..regression import build_regression, lagged_columns, solve_least_squares
-from ..result import rms_error
-from ..static_maps import PiecewiseLinearMap
+from ..identification.linear import LinearModel
+from ..identification.piecewise_linear_ls import (
+    drop_empty_intervals,
+    plls,
+    point_slope_basis,
+    point_slope_map,
+    rank_one_factors,
+)
+from ..identification.regression import build_regression, lagged_columns, solve_least_squares
+from ..identification.result import rms_error
+from ..identification.static_maps import PiecewiseLinearMap
 from .simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
 from .split import held_back
 

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from ..correlation import cross_correlation
+from ..identification.correlation import cross_correlation
 
 MAX_LAG = 20
 

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ..errors import UsageError
-from ..regression import delayed
+from ..identification.regression import delayed
 
 MIN_SAMPLES = 60
 INITIAL_SAMPLES = 3  # measured outputs averaged for the operating point a separate record starts at

@@ -1,0 +1,154 @@
+"""``hammer-ros``: the command-line contract of ../shared/spec/cli.md (a thin adapter).
+
+Every user mistake ends in exit code 2 and one line on stderr naming the file, field or
+option; results go to stdout (one JSON document with --json), logs/progress to stderr.
+The subcommands ``diagnose`` and ``replay`` are modules of this package; ``demo``, ``bench``
+and ``reproduce`` are the tools of ``hammer_ros.tools``, imported only when they run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+import numpy as np
+
+from ..errors import HammerRosError, IdentificationError
+from .common import (
+    OneLineErrorParser,
+    add_data_options,
+    add_identify_options,
+    emit,
+    format_model,
+    load_data,
+    options_from_args,
+    positive_int,
+)
+
+REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric")
+# `all`: the papers' numerical examples; `real` (the measured records, minutes of diagnosis) runs on its own
+REPRODUCE_ALL = ("cls", "plls", "bf", "semiparametric")
+
+
+
+def cmd_identify(args: argparse.Namespace) -> int:
+    from ..identification.methods import identify
+
+    options = options_from_args(args)
+    record = load_data(args.data, args)
+    try:
+        result = identify(args.method, record.v, record.y, options)
+    except IdentificationError as exc:  # name the data the method could not identify from
+        raise IdentificationError(f"{args.data}: {exc}") from None
+    doc = result.to_json(record.v, record.y)
+    emit(doc, args.json, format_model(doc))
+    return 0
+
+
+
+def cmd_reproduce(args: argparse.Namespace) -> int:
+    from ..tools.reproduce import format_markdown, reproduce_rows
+
+    targets = REPRODUCE_ALL if args.target == "all" else (args.target,)
+    rows = reproduce_rows(targets, runs=args.runs, seed=args.seed)
+    emit({"rows": rows} if args.json else {}, args.json, None if args.json else format_markdown(rows))
+    return 0
+
+
+
+def _delegate(module: str, function: str = "run"):
+    """The subcommand run by ``module.function(args)``, imported only when it runs."""
+    def run(args: argparse.Namespace) -> int:
+        return getattr(importlib.import_module(module), function)(args)
+
+    return run
+
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = OneLineErrorParser(prog="hammer-ros", description="Hammerstein system identification for ROS 2.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineErrorParser)
+    sub.required = True
+
+    p = sub.add_parser("identify", help="batch identification of a record")
+    p.add_argument("data", metavar="DATA", help="CSV, NPZ, .mcap or rosbag2 directory")
+    add_data_options(p)
+    add_identify_options(p)
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.set_defaults(func=cmd_identify)
+
+    p = sub.add_parser("diagnose", help="what the model gets wrong, why, and the extended model")
+    p.add_argument("data", metavar="DATA")
+    add_data_options(p)
+    p.add_argument("--validation", default=None, metavar="DATA2", help="validation record (default: --split)")
+    p.add_argument("--split", type=float, default=0.7, help="estimation fraction of DATA (default 0.7)")
+    p.add_argument("--order", type=positive_int, default=None, help="order of the nominal linear block")
+    p.add_argument("--delay", type=positive_int, default=None, help="relative degree (default: estimated)")
+    p.add_argument("--report", default=None, metavar="FILE.html", help="write a self-contained HTML report")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_delegate("hammer_ros.cli.diagnose"))
+
+    p = sub.add_parser("replay", help="feed a bag through the streaming engine")
+    p.add_argument("bag", metavar="BAG")
+    add_data_options(p)
+    add_identify_options(p)
+    p.add_argument("--window", type=positive_int, default=None, help="window length W (samples)")
+    p.add_argument("--sample-rate", type=float, default=None, help="sample grid rate in Hz (default: inferred)")
+    p.add_argument("--solve-rate", type=float, default=None, help="solves per second of bag time")
+    p.add_argument("--out", default=None, metavar="OUT.mcap", help="write every result into this MCAP")
+    p.add_argument("--rate", type=float, default=None, help="play at this multiple of real time on the ROS graph")
+    p.add_argument("--forgetting", type=float, default=None, help="exponential forgetting factor (default 1: window)")
+    p.add_argument("--interpolation", choices=("zoh", "linear"), default=None, help="alignment (default zoh)")
+    p.add_argument("--json", action="store_true")
+    # None = take it from --config (then the engine default): the identify options' defaults
+    p.set_defaults(func=_delegate("hammer_ros.cli.replay"), method=None, order=None, delay=None, poly=None)
+
+    p = sub.add_parser("demo", help="simulated plant + live identification node")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
+    p.set_defaults(func=_delegate("hammer_ros.tools.demo"))
+
+    p = sub.add_parser("reproduce", help="re-run the papers' examples beside their published numbers")
+    p.add_argument("target", nargs="?", default="all", choices=(*REPRODUCE_TARGETS, "all"),
+                   help="all = the papers' examples (about 40 s); real = the measured records (a few minutes)")
+    p.add_argument("--runs", type=positive_int, default=None, help="Monte Carlo runs (default per table)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_reproduce)
+
+    p = sub.add_parser("bench", help="speed and accuracy benchmark (not part of the tests)")
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("--only", default=None, type=lambda text: [s.strip() for s in text.split(",") if s.strip()],
+                   help="comma-separated sections: ingest,node,replay,solve,peers,memory (default all)")
+    p.add_argument("--profile", action="store_true", help="print a cProfile of each section on stderr")
+    p.set_defaults(func=_delegate("hammer_ros.tools.bench"))
+    return parser
+
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["node"]:
+        from ..ros.node import main as node_main
+
+        return node_main(argv[1:])
+    try:
+        args = build_parser().parse_args(argv)
+        return int(args.func(args) or 0)
+    except HammerRosError as exc:
+        print(f"hammer-ros: error: {exc}", file=sys.stderr)
+        return 2
+    except np.linalg.LinAlgError as exc:  # a method's linear algebra failed on the user's data
+        print(f"hammer-ros: error: {argv[0]}: numerical failure on this data ({exc})", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:  # stdout closed early (e.g. piped into head): not an error
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except OSError as exc:  # unreadable/unwritable file, disk full, ... (after BrokenPipeError, its subclass)
+        print(f"hammer-ros: error: {exc.filename or argv[0]}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+

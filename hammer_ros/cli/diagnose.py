@@ -1,0 +1,72 @@
+"""``hammer-ros diagnose DATA [--validation DATA2 | --split F] [--order N] [--json] [--report FILE.html]``
+(the subparser lives in ``hammer_ros.cli``; this is its thin adapter)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from ..diagnosis.causes import EXTENSION, MEANING
+from ..diagnosis.diagnose import Diagnosis, diagnose
+from ..diagnosis.split import Split, check_split, split_record
+from ..errors import IdentificationError, UsageError
+
+
+def load_split(args: argparse.Namespace) -> Split:
+    """DATA split at --split, or DATA for estimation and --validation DATA2 for validation."""
+    from .common import load_data
+
+    record = load_data(args.data, args)
+    if args.validation:
+        validation = load_data(args.validation, args)
+        split = Split(record.v, record.y, validation.v, validation.y, continuous=False)
+        check_split(split)
+        return split
+    return split_record(record.v, record.y, args.split)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.order is not None and args.order < 1:
+        raise UsageError(f"--order: must be >= 1 (got {args.order})")
+    if args.delay is not None and args.order is not None and args.delay > args.order:
+        raise UsageError(f"--delay: relative degree {args.delay} exceeds --order {args.order}")
+    split = load_split(args)
+    try:
+        result = diagnose(split, args.order, args.delay)
+    except (np.linalg.LinAlgError, FloatingPointError) as exc:
+        raise IdentificationError(f"{args.data}: no Hammerstein model can be fitted to this record ({exc})") from None
+    if args.report:
+        from ..diagnosis.report import write_report
+
+        try:
+            write_report(result, args.report, title=f"hammer-ros diagnose {args.data}")
+        except OSError as exc:
+            raise UsageError(f"--report: cannot write {args.report} ({exc.strerror or exc})") from None
+        print(f"report written to {args.report}", file=sys.stderr)
+    from .common import emit
+
+    emit(result.diagnosis.to_json(), args.json, summary(result.diagnosis))
+    return 0
+
+
+def summary(d: Diagnosis) -> str:
+    """The diagnosis in a few lines for a terminal."""
+    b = d.baseline
+    dead_time = d.baseline_model.get("dead_time", 0)
+    lines = [f"baseline  {b.structure}: validation rms {b.rms:.4g}, fit {b.fit_percent:.1f} %"
+             + (f", input dead time {dead_time} samples" if dead_time else ""),
+             f"cause     {d.cause} (confidence {d.confidence:.2f}): {MEANING[d.cause]}"]
+    if d.extended is not None:
+        e = d.extended
+        lines.append(f"extended  {EXTENSION[d.cause]}")
+        lines.append(f"          validation rms {e.rms:.4g}, fit {e.fit_percent:.1f} %, gain (rms ratio) {d.gain:.3f}")
+    others = [f"{c} {g:.3f}" for c, g in d.candidates if c != d.cause]
+    if others:
+        lines.append(f"also fitted (gain): {', '.join(others)}")
+    failed = [e for e in d.evidence if not e.passed]
+    passed = len(d.evidence) - len(failed)
+    lines.append(f"evidence  {passed} of {len(d.evidence)} tests passed" + (":" if failed else ""))
+    lines += [f"  FAIL {e.test}: {e.value:.4g} > {e.bound:.4g}" for e in failed]
+    return "\n".join(lines)

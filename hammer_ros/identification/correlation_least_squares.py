@@ -1,0 +1,352 @@
+"""Paper 000 (Lum & Bernstein): correlation least squares (CLS), Bai's two-stage nonlinear
+least squares (NLS) and standard least squares (LS) for the Hammerstein model
+y = G(q) F[v], each with the ARX (eq. 1) or the mu-Markov (eq. 3) structure of G.
+
+Poles and zeros: ARX directly from the estimated (a_j, b_i); mu-Markov from the estimated
+Markov parameters h_d .. h_(d+mu-1) via ERA (``hammer_ros.identification.era``; paper 000 footnote 1,
+Juang 1994), as the paper does, at the known order n and relative degree d.
+
+Gain: every result's ``gain`` is h_d_hat, the first non-zero Markov parameter of the
+identified linear block when the identified nonlinearity is normalised to unit slope
+(gamma_1 = 1). The paper's "Gain" column is h_d_hat / h_d (h_d of the true plant); it is not
+the static gain. ``markov`` holds h_0 .. h_(d+mu-1) of the identified linear block (estimated
+directly for mu-Markov, the impulse response of the ARX model for ARX).
+
+Defaults (documented choices, the paper leaves them open):
+
+* mu = 30 Markov parameters (paper 000 sec. 4).
+* tau_max, the largest correlation lag of CLS (eq. 8), ``default_tau_max``: max(15, 3n) for
+  ARX and 2 (mu + n) for mu-Markov (66 for mu = 30, n = 3). The step-1 regression runs over
+  the 2 tau_max + 1 correlation lags. mu-Markov needs its mu + n - 1 lags plus enough rows
+  (tau_max well above mu + n; paper Fig. 7 shows it failing at 2 tau_max + 1 < 31); with
+  2 (mu + n) it has 3 (mu + n) + 2 rows for mu + 2n - 1 parameters. ARX, with only 2n
+  parameters, is better off without the long tail of the correlation functions, where the
+  impulse response has decayed and only estimation error is left: on G1 and G2 (paper 000
+  Tables 1-4, 6) the pole/zero RSS is lowest for tau_max = 15-20 and grows beyond (the zero
+  at 0.5 drifts to 0.47 at tau_max = 30); below ~3n there are too few rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from ..errors import IdentificationError
+from .correlation import auto_correlation, cross_correlation
+from .era import eigensystem_realization
+from .linear import LinearModel
+from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
+from .regression import fit_regression, markov_lags, polynomial_basis, solve_least_squares
+from .result import IdentificationResult
+from .simulate import simulate_hammerstein
+from .static_maps import PiecewiseLinearMap, PolynomialMap
+
+DEFAULT_MU = 30
+STRUCTURES = ("arx", "markov")
+
+
+@dataclass(frozen=True, eq=False)
+class LinearEstimate:
+    """An identified linear block: the model (ARX, or the ERA realisation of the mu-Markov
+    estimate), its Markov parameters h_0 .. h_(d+mu-1), and the raw regression solution
+    (a_j or alpha_j; b_i or h_i, beta_i) in the lag order of ``regression.markov_lags``."""
+
+    linear: LinearModel
+    markov: np.ndarray
+    denominator: np.ndarray
+    numerator: np.ndarray
+    delay: int
+    mu: int
+
+    @property
+    def first_markov(self) -> float:
+        """h_d, the first non-zero Markov parameter (d = the relative degree)."""
+        return float(self.markov[self.delay])
+
+    def scaled(self, factor: float) -> LinearEstimate:
+        return LinearEstimate(self.linear.scaled(factor), self.markov * factor, self.denominator,
+                              self.numerator * factor, self.delay, self.mu)
+
+
+@dataclass(frozen=True, eq=False)
+class HammersteinEstimate:
+    """y = G(q) F[v] with F a polynomial (ascending coefficients from v^0) of unit slope
+    gamma_1 = 1, so that ``linear.first_markov`` is the paper's gain figure h_d_hat (or a
+    piecewise-linear F of unit Bussgang gain, ``piecewise_linear_step``)."""
+
+    linear: LinearEstimate
+    nonlinearity: PolynomialMap | PiecewiseLinearMap | None
+
+
+def _check_record(v: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(v, dtype=float).ravel()
+    y = np.asarray(y, dtype=float).ravel()
+    if v.size != y.size:
+        raise IdentificationError(f"input and output differ in length ({v.size} vs {y.size})")
+    return v, y
+
+
+def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int, intercept: bool = False):
+    """Solve the ARX (mu = 1) or mu-Markov regression (eqs. 1, 3) of y on v (1-D or a basis
+    matrix): returns (regression, a or alpha, input coefficients as lags x channels)."""
+    reg, theta = fit_regression(y, v, order, delay, mu, intercept)
+    a, coefficients = reg.split(theta)
+    return reg, a, coefficients
+
+
+def linear_estimate(a: np.ndarray, numerator: np.ndarray, order: int, delay: int, mu: int) -> LinearEstimate:
+    """The linear block from regression coefficients: ARX (mu = 1) directly as
+    B(q^-1)/A(q^-1) of eq. (2); mu-Markov (mu > 1) by ERA of order n from the estimated
+    Markov parameters h_d .. h_(d+mu-1) of eq. (3) (paper 000 footnote 1)."""
+    numerator = np.asarray(numerator, dtype=float)
+    if mu == 1:
+        linear = LinearModel(np.concatenate([np.zeros(delay), numerator]), np.concatenate([[1.0], a]))
+        markov = linear.markov_parameters(delay + DEFAULT_MU)
+    else:
+        markov = np.concatenate([np.zeros(delay), numerator[:mu]])
+        linear = eigensystem_realization(markov, order).to_linear_model(delay)
+    return LinearEstimate(linear, markov, np.asarray(a, dtype=float), numerator, delay, mu)
+
+
+def _mu(structure: str, mu: int | None) -> int:
+    if structure not in STRUCTURES:
+        raise IdentificationError(f"structure must be one of {STRUCTURES}, got {structure!r}")
+    return 1 if structure == "arx" else (DEFAULT_MU if mu is None else int(mu))
+
+
+def default_tau_max(order: int, mu: int = 1) -> int:
+    """max(15, 3 order) for ARX (mu = 1), 2 (mu + order) for mu-Markov (module docstring)."""
+    return max(15, 3 * order) if mu == 1 else 2 * (mu + order)
+
+
+# --- standard least squares (sec. 3.3) -------------------------------------------------------
+
+
+def standard_least_squares(v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1) -> LinearEstimate:
+    """Standard LS, paper 000 sec. 3.3: ignore F and fit the ARX (mu = 1, eq. 1) or mu-Markov
+    (eq. 3) model to the raw pairs (v(k), y(k)). Its h_d_hat estimates C_F h_d only for
+    mu-Markov with a long enough mu (the y-lags correlate with the unmodelled distortion)."""
+    v, y = _check_record(v, y)
+    _, a, coefficients = _least_squares_fit(y, v, order, delay, mu)
+    return linear_estimate(a, coefficients[:, 0], order, delay, mu)
+
+
+# --- correlation least squares (sec. 3.1) ----------------------------------------------------
+
+
+def correlation_functions(v: np.ndarray, y: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.ndarray]:
+    """(phi_vv, phi_yv) for tau = -tau_max .. tau_max, paper 000 eq. (8) (Remark 2: the record
+    holds N + 2 tau_max + 1 samples, every lag averages the same N + 1 products)."""
+    v, y = _check_record(v, y)
+    try:
+        return auto_correlation(v, tau_max), cross_correlation(v, y, tau_max)
+    except ValueError as exc:
+        raise IdentificationError(f"tau_max {tau_max}: {exc}") from None
+
+
+def gain_correction(
+    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, poly: int = 3,
+    basis: np.ndarray | None = None,
+) -> np.ndarray:
+    """CLS step 2 (paper 000 sec. 3.1): gamma_1 .. gamma_p of
+
+        A_hat(q^-1) y(k) = B_hat(q^-1) [gamma_1 v(k) + ... + gamma_p v^p(k)] + e(k),
+
+    by least squares on the raw record, with (A_hat, B_hat) the step-1 ARX polynomials or the
+    ARMARKOV polynomials of eq. (4) (alpha_j, h_i, beta_i) for mu-Markov, at the lags of
+    ``regression.markov_lags``. The regressors are the basis v^0, v, ..., v^p filtered by the
+    FIR B_hat, the target is y filtered by A_hat (rows from the largest lag on, as the shared
+    regression builder would give them, without forming its W x (n + (p+1)(mu+n)) matrix).
+
+    Offsets (an extension of the paper, which assumes a zero-mean input): a constant gamma_0
+    is estimated with gamma_1..gamma_p, so a command with a non-zero mean or a sensor offset
+    does not bias F; the returned array is gamma_0..gamma_p.
+
+    ``basis`` (N x q, its first column the constant) replaces the monomials 1, v, ..., v^p:
+    the paper's step 2 is linear in any basis functions of v, e.g. the point-slope basis of
+    paper 001 (``piecewise_linear_step``)."""
+    try:
+        output_lags, input_lags = markov_lags(order, delay, step1.mu)
+    except ValueError as exc:
+        raise IdentificationError(f"CLS step 2: {exc}") from None
+    first = int(max(output_lags.max(), input_lags.max()))
+    if basis is None:
+        basis = polynomial_basis(v, poly, constant=True)
+    if v.size <= first + basis.shape[1]:
+        raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
+    denominator = np.zeros(first + 1)
+    denominator[0] = 1.0
+    denominator[output_lags] = step1.denominator
+    numerator = np.zeros(first + 1)
+    numerator[input_lags] = step1.numerator
+    target = signal.lfilter(denominator, [1.0], y)[first:]
+    regressors = signal.lfilter(numerator, [1.0], basis, axis=0)[first:]
+    return solve_least_squares(regressors, target)
+
+
+def correlation_least_squares(
+    v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1, tau_max: int | None = None, poly: int = 3
+) -> HammersteinEstimate:
+    """Correlation least squares (CLS), paper 000 sec. 3.1, on the record (v, y): the
+    correlation functions of eq. (8) up to ``tau_max`` (None = ``default_tau_max``), then
+    ``correlation_least_squares_steps``."""
+    tau_max = default_tau_max(order, mu) if tau_max is None else int(tau_max)
+    phi_vv, phi_yv = correlation_functions(v, y, tau_max)
+    return correlation_least_squares_steps(phi_vv, phi_yv, v, y, order, delay, mu, poly)
+
+
+def correlation_least_squares_steps(
+    phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1,
+    poly: int = 3, partition: np.ndarray | None = None,
+) -> HammersteinEstimate:
+    """CLS steps 1 and 2 (paper 000 sec. 3.1) from given correlation functions (indexed by
+    tau + tau_max, e.g. the streaming engine's window sums) and the raw record for step 2.
+
+    Step 1: with a separable input (Gaussian, sinusoid, phase-modulated sinusoid), Lemma 2
+    (eq. 7) gives phi_yv = C_F h * phi_vv, so the ARX / mu-Markov regression (the shared
+    builder) applied to the correlation functions as "input-output" data,
+
+        phi_yv(k) = -sum_j a_j phi_yv(k-j) + sum_i b_i phi_vv(k-i)        (and eq. 3 likewise),
+
+    over k = tau = -tau_max .. tau_max identifies h_hat = C_F h without knowing F.
+    Step 2 (``gain_correction``): gamma_0..gamma_p with the step-1 (A_hat, B_hat); then
+    B = s B_hat and F = (gamma_0 + gamma_1 v + ... + gamma_p v^p) / s with s = F'(mean v),
+    i.e. F has unit slope at the operating point (for the paper's zero-mean input this is its
+    monic F, gamma_1 = 1).
+
+    Offsets (an extension; the paper assumes zero-mean signals): step 1 carries an intercept,
+    which makes (a, b) invariant to constant offsets of both correlation functions. A Gaussian
+    input N(m, s^2) gives raw correlations phi_vv + m^2 and phi_yv + m E{y}, so the intercept
+    reproduces the centred-signal estimate (Bussgang/Nuttall holds for v - m) while the
+    estimator stays the paper's eq. (8) - which the streaming engine updates recursively.
+
+    With ``partition`` F is piecewise linear on those breakpoints instead (``piecewise_linear_step``).
+    """
+    v, y = _check_record(v, y)
+    phi_vv, phi_yv = _check_record(phi_vv, phi_yv)
+    _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu, intercept=True)
+    step1 = linear_estimate(a, coefficients[:, 0], order, delay, mu)
+    if partition is not None:
+        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float))
+    gamma = gain_correction(v, y, step1, order, delay, poly)
+    slope = float(np.polynomial.polynomial.polyval(np.mean(v), np.polynomial.polynomial.polyder(gamma)))
+    if abs(slope) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
+        raise IdentificationError("CLS step 2: F has zero slope at the input mean; the linear block's gain is "
+                                  "not identifiable")
+    return HammersteinEstimate(step1.scaled(slope), PolynomialMap(gamma / slope))
+
+
+def piecewise_linear_step(
+    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, partition: np.ndarray
+) -> HammersteinEstimate:
+    """CLS step 2 with a piecewise-linear F (an extension: paper 000's step 2 in the
+    point-slope basis of paper 001, eqs. 8-11): F(v) = eta(v)^T m + kappa on ``partition``
+    by least squares given the step-1 (A_hat, B_hat) (``gain_correction``). Step 1 needs no
+    assumption on F (Lemma 2), so the poles and zeros are those of the polynomial variant,
+    while F may have the corners of a dead zone, a saturation or a relay. F is normalised to
+    unit Bussgang gain cov(F(v), v) / var(v) (its slope at the operating point may be zero,
+    e.g. inside a dead zone), B = s B_hat accordingly."""
+    check_partition(v, partition, "input")
+    primary = default_primary_index(partition)
+    eta = point_slope_basis(v, partition, primary)
+    theta = gain_correction(v, y, step1, order, delay, basis=np.column_stack([np.ones(v.size), eta]))
+    f = eta @ theta[1:] + theta[0]
+    centred = v - v.mean()
+    scale = float(centred @ (f - f.mean()) / (centred @ centred))
+    if abs(scale) < 1e-12 * max(1.0, float(np.max(np.abs(theta)))):
+        raise IdentificationError("CLS step 2: F is uncorrelated with the input; the linear block's gain is "
+                                  "not identifiable")
+    return HammersteinEstimate(step1.scaled(scale), point_slope_map(partition, primary, theta[1:] / scale,
+                                                                     float(theta[0] / scale)))
+
+
+# --- Bai's two-stage nonlinear least squares (sec. 3.2) --------------------------------------
+
+
+def bai_two_stage_nls(
+    v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1, poly: int = 3
+) -> HammersteinEstimate:
+    """Bai's two-stage NLS (Bai 1998; paper 000 sec. 3.2, eqs. 9-12), monomials f_l = v^l.
+
+    Stage 1: least squares on eq. (10), theta = (a_1..a_n, b_i gamma_l lag-major), i.e. the
+    shared builder with the basis matrix [v, v^2, ..., v^p] (mu-Markov: eq. 3 with every
+    input coefficient h_i, beta_i multiplied by gamma_l).
+    Stage 2: Theta_bgamma (input lags x p) = sum sigma_i U_i V_i^T; the rank-one part
+    sigma_1 U_1 V_1^T = b gamma^T with Remark 3's normalisation gamma_1 = 1 (eq. 12):
+
+        gamma_hat = V_1 / V_11,   b_hat = sigma_1 V_11 U_1.
+
+    Eq. (12) reads "b_hat = U_1/sigma_1 V_11" in the text; the reading sigma_1 V_11 U_1 is the
+    one with b_hat gamma_hat^T = sigma_1 U_1 V_1^T, and it reproduces Table 1 (exact for F_1).
+    """
+    v, y = _check_record(v, y)
+    _, a, lumped = _least_squares_fit(y, polynomial_basis(v, poly), order, delay, mu)
+    u, s, vt = np.linalg.svd(lumped, full_matrices=False)
+    v11 = vt[0, 0]
+    if s[0] == 0.0 or abs(v11) < 1e-12:
+        raise IdentificationError("NLS stage 2: the linear term of F is not identifiable (V_11 = 0)")
+    b_hat = s[0] * v11 * u[:, 0]
+    gamma = vt[0] / v11
+    nonlinearity = PolynomialMap(np.concatenate([[0.0], gamma]))
+    return HammersteinEstimate(linear_estimate(a, b_hat, order, delay, mu), nonlinearity)
+
+
+# --- the registry's entry points (hammer_ros.identification.methods) ----------------------------------------
+
+
+def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict) -> IdentificationResult:
+    linear, nonlinearity = estimate.linear, estimate.nonlinearity
+
+    def simulate(v: np.ndarray) -> np.ndarray:
+        if nonlinearity is None:
+            return linear.linear.simulate(v)
+        return simulate_hammerstein(v, nonlinearity, linear.linear)
+
+    return IdentificationResult(
+        method=method,
+        linear=linear.linear,
+        simulate=simulate,
+        order=order,
+        gain=linear.first_markov,
+        nonlinearity=nonlinearity,
+        markov=linear.markov,
+        extra=extra,
+    )
+
+
+def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
+    """``cls-arx`` / ``cls-markov``: CLS with the options' order, delay, mu (default 30),
+    tau_max (default ``default_tau_max``) and poly, or a piecewise-linear F on the options'
+    partition when it is given (``piecewise_linear_step``)."""
+    mu = _mu(structure, options.mu)
+    tau_max = default_tau_max(options.order, mu) if options.tau_max is None else options.tau_max
+    phi_vv, phi_yv = correlation_functions(v, y, tau_max)
+    return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure)
+
+
+def cls_from_correlations(
+    phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, options, structure: str = "arx"
+) -> IdentificationResult:
+    """``identify_cls`` on given correlation functions (tau_max = (len - 1) / 2), e.g. the
+    streaming engine's window sums; (v, y) is the raw window for step 2."""
+    mu = _mu(structure, options.mu)
+    estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
+                                               options.partition)
+    extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
+    return _result(f"cls-{structure}", estimate, options.order, extra)
+
+
+def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
+    """``nls-arx`` / ``nls-markov``: ``bai_two_stage_nls`` with monomials up to ``poly``."""
+    mu = _mu(structure, options.mu)
+    estimate = bai_two_stage_nls(v, y, options.order, options.delay, mu, options.poly)
+    return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})
+
+
+def identify_ls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
+    """``ls-arx`` / ``ls-markov``: ``standard_least_squares`` (no nonlinearity)."""
+    mu = _mu(structure, options.mu)
+    estimate = HammersteinEstimate(standard_least_squares(v, y, options.order, options.delay, mu), None)
+    return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})

@@ -1,0 +1,61 @@
+"""The identification methods by their CLI names, and the options they share.
+
+Each entry names the module and function that implement it; every such function has the
+signature ``fn(v, y, options, **kwargs) -> IdentificationResult`` and takes the excitation
+``v`` and the response ``y`` as 1-D arrays of equal length.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..errors import UsageError
+from .result import IdentificationResult
+
+
+@dataclass(frozen=True)
+class IdentifyOptions:
+    """Options of ``hammer-ros identify`` (None = the method's documented default)."""
+
+    order: int = 3
+    delay: int = 1
+    mu: int | None = None
+    poly: int = 3
+    partition: tuple[float, ...] | None = None
+    tau_max: int | None = None
+    harmonic: tuple[Any, Any] | None = None  # (v, y) of the single-harmonic record
+    feedback_partition: tuple[float, ...] | None = None  # PLLS: breakpoints d of the feedback map h(y)
+
+
+METHODS: dict[str, tuple[str, str, dict]] = {
+    "cls-arx": ("correlation_least_squares", "identify_cls", {"structure": "arx"}),
+    "cls-markov": ("correlation_least_squares", "identify_cls", {"structure": "markov"}),
+    "nls-arx": ("correlation_least_squares", "identify_nls", {"structure": "arx"}),
+    "nls-markov": ("correlation_least_squares", "identify_nls", {"structure": "markov"}),
+    "ls-arx": ("correlation_least_squares", "identify_ls", {"structure": "arx"}),
+    "ls-markov": ("correlation_least_squares", "identify_ls", {"structure": "markov"}),
+    "plls-hammerstein": ("piecewise_linear_ls", "identify_plls", {"structure": "hammerstein"}),
+    "plls-feedback": ("piecewise_linear_ls", "identify_plls", {"structure": "feedback"}),
+    "plls-hammerstein-feedback": (
+        "piecewise_linear_ls",
+        "identify_plls",
+        {"structure": "hammerstein_feedback"},
+    ),
+    "bf-hammerstein": ("billings_fakhouri", "identify_bf", {"structure": "hammerstein"}),
+    "bf-feedforward": ("billings_fakhouri", "identify_bf", {"structure": "feedforward"}),
+    "semiparametric": ("semiparametric", "identify_semiparametric", {}),
+}
+
+
+def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions) -> IdentificationResult:
+    """Run the method called ``method`` (a key of METHODS) on the record (v, y)."""
+    try:
+        module_name, function_name, kwargs = METHODS[method]
+    except KeyError:
+        raise UsageError(f"--method: unknown method {method!r} (choose from {', '.join(METHODS)})") from None
+    module = importlib.import_module(f"{__package__}.{module_name}")
+    return getattr(module, function_name)(np.asarray(v, float), np.asarray(y, float), options, **kwargs)

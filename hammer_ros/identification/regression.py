@@ -1,0 +1,137 @@
+"""Regression builders shared by every least-squares method (CLS, NLS, LS, PLLS, diagnosis).
+
+The same builder is used on raw signals (v(k), y(k)) and on correlation functions
+(phi_vv(tau), phi_yv(tau)): paper 000 step 1 of CLS is exactly the ARX / mu-Markov
+regression with the correlation functions as "input-output" data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import IdentificationError
+
+
+def delayed(x: np.ndarray, lag: int, initial: float = 0.0) -> np.ndarray:
+    """x(k - lag), the first ``lag`` values (the record's unknown past) set to ``initial``."""
+    x = np.asarray(x, dtype=float)
+    if lag <= 0:
+        return x
+    return np.concatenate([np.full(min(lag, x.size), initial), x[: max(x.size - lag, 0)]])
+
+
+def lagged_columns(x: np.ndarray, lags, rows: np.ndarray) -> np.ndarray:
+    """Columns x(k - l) for l in ``lags`` at sample indices k in ``rows``.
+
+    ``x`` may be 1-D (one channel) or 2-D (N x p basis functions f_1..f_p); a 2-D input
+    gives p adjacent columns per lag, ordered lag-major: f_1(k-l), ..., f_p(k-l), as in
+    Bai's theta (paper 000, sec. 3.2).
+    """
+    x = np.asarray(x, dtype=float)
+    x2 = x[:, None] if x.ndim == 1 else x
+    lags = np.asarray(list(lags), dtype=int)
+    if lags.size == 0:
+        return np.zeros((rows.size, 0))
+    block = x2[rows[:, None] - lags[None, :]]  # (rows, lags, p)
+    return block.reshape(rows.size, -1)
+
+
+@dataclass(frozen=True, eq=False)
+class Regression:
+    """Z = Phi theta + E with theta = [a_1..a_n | input coefficients per input lag].
+
+    ``output_lags`` and ``input_lags`` record which lags the columns hold; the output
+    columns are negated so that theta holds the denominator coefficients a_j directly.
+    """
+
+    phi: np.ndarray
+    target: np.ndarray
+    rows: np.ndarray
+    output_lags: np.ndarray
+    input_lags: np.ndarray
+    channels: int
+
+    def split(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(a_1..a_n, input coefficients as an (input lags x channels) matrix)."""
+        n = self.output_lags.size
+        return theta[:n], theta[n:].reshape(self.input_lags.size, self.channels)
+
+
+def markov_lags(order: int, delay: int, mu: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Output and input lags of the mu-Markov model, paper 000 eq. (3):
+
+        y(k) = -sum_{j=1}^{n} alpha_j y(k-mu+1-j) + sum_{i=d}^{d+mu-1} h_i v(k-i)
+               + sum_{i=d+1}^{n} beta_i v(k-mu+1-i),
+
+    mu = 1 gives the ARX model of eq. (1): output lags 1..n, input lags d..n.
+    """
+    if order < 1 or delay < 0 or mu < 1 or delay > order:
+        raise ValueError(f"need order >= 1, 0 <= delay <= order, mu >= 1 (got {order}, {delay}, {mu})")
+    output_lags = np.arange(1, order + 1) + mu - 1
+    markov = np.arange(delay, delay + mu)
+    tail = np.arange(delay + 1, order + 1) + mu - 1
+    return output_lags, np.concatenate([markov, tail])
+
+
+def build_regression(
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, start: int | None = None
+) -> Regression:
+    """Regression of the ARX (mu = 1) or mu-Markov model (paper 000, eqs. 1 and 3).
+
+    ``v`` is the input (1-D) or a matrix of basis functions of it (N x p, for NLS and PLLS).
+    Rows are k = start..N-1 with ``start`` defaulting to the largest lag.
+    """
+    y = np.asarray(y, dtype=float)
+    v = np.asarray(v, dtype=float)
+    if v.shape[0] != y.shape[0]:
+        raise ValueError(f"input and output lengths differ ({v.shape[0]} vs {y.shape[0]})")
+    output_lags, input_lags = markov_lags(order, delay, mu)
+    first = int(max(output_lags.max(), input_lags.max()))
+    start = first if start is None else max(start, first)
+    rows = np.arange(start, y.shape[0])
+    if rows.size == 0:
+        raise ValueError(f"too few samples ({y.shape[0]}) for lags up to {first}")
+    phi = np.hstack([-lagged_columns(y, output_lags, rows), lagged_columns(v, input_lags, rows)])
+    channels = 1 if v.ndim == 1 else v.shape[1]
+    return Regression(phi, y[rows], rows, output_lags, input_lags, channels)
+
+
+def solve_least_squares(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """theta minimising ||target - phi theta||_2 (QR / SVD based, never the normal equations)."""
+    theta, *_ = np.linalg.lstsq(phi, target, rcond=None)
+    return theta
+
+
+def fit_regression(
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, intercept: bool = False
+) -> tuple[Regression, np.ndarray]:
+    """Build the ARX / mu-Markov regression of y on v and solve it by least squares.
+
+    With ``intercept`` a constant column is added and its coefficient dropped from the
+    returned theta: the estimate of (a, b) is then invariant to constant offsets of y and v.
+
+    Raises IdentificationError (naming order, delay, mu) when the record - or the number of
+    correlation lags, when y and v are correlation functions - is too short for the model.
+    """
+    try:
+        reg = build_regression(y, v, order, delay, mu)
+    except ValueError as exc:
+        raise IdentificationError(f"--order/--delay/--mu: {exc}") from None
+    phi = np.hstack([reg.phi, np.ones((reg.rows.size, 1))]) if intercept else reg.phi
+    if reg.rows.size < phi.shape[1]:
+        raise IdentificationError(
+            f"{reg.rows.size} regression rows for {phi.shape[1]} parameters "
+            f"(order {order}, delay {delay}, mu {mu}): record or --tau-max too short"
+        )
+    theta = solve_least_squares(phi, reg.target)
+    return reg, theta[: reg.phi.shape[1]]
+
+
+def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.ndarray:
+    """Columns v, v^2, ..., v^degree (f_l = v^l, paper 000 Remark 3), with a leading column of
+    ones when ``constant``."""
+    v = np.asarray(v, dtype=float)
+    powers = np.cumprod(np.broadcast_to(v[:, None], (v.size, degree)), axis=1)  # v, v^2, ... by products
+    return np.hstack([np.ones((v.size, 1)), powers]) if constant else powers

@@ -1,0 +1,673 @@
+"""MCAP bags in and out: ``.mcap`` files and rosbag2 directories (metadata.yaml + .mcap files).
+
+Reading uses ``mcap`` + ``mcap_ros2`` (CDR decoding from the ``ros2msg`` schemas stored in the
+bag, so no ROS installation is needed). Only the topics asked for are decoded; other topics and
+unknown schemas are skipped. Files are read sequentially and fault-tolerantly (``_RecordScan``):
+a truncated or corrupt recording gives every valid message, with a warning saying where it
+broke; oversized or undecodable messages are skipped and counted (``BagReadStats``).
+A sample's stamp is the message's ``header.stamp`` when it has a
+header (an all-zero stamp counts as unset), else the bag's log time; a message with n samples
+(``data[:]``, a numeric array field) follows the batch convention of ``field_path``.
+
+Writing (``ResultWriter``) uses the ``mcap_ros2`` writer with the ``.msg`` definitions shipped in
+``hammer_ros/data/ros2_msgs`` (Jazzy's, see the README there), so Foxglove Studio, rosbag2 and
+``rosbags`` can open the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import re
+import struct
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..errors import UsageError
+from ..ros.field_path import FieldPath, extract_samples, message_stamp, parse_field_path
+from ..streaming.aligner import StreamAligner
+from ..streaming.config import EngineConfig, EngineStats
+from .records import Record
+
+SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
+SCHEMA_SEPARATOR = "=" * 80
+PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
+              "int64", "uint64", "string", "wstring"}
+# msg_config keys that are not engine settings
+TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
+              "response_field")
+OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap")
+FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
+
+
+# ------------------------------------------------------------------------------- specs and config
+@dataclass(frozen=True)
+class StreamSpec:
+    """Where one signal is: a topic, the field path in its messages, optionally the type."""
+
+    topic: str
+    field: FieldPath
+    type_name: str | None = None
+
+    def __str__(self) -> str:
+        return f"{self.topic}:{self.field}"
+
+
+def parse_stream_spec(text: str, option: str) -> StreamSpec:
+    """``/topic:field.path`` (e.g. ``/joint_states:velocity[0]``) -> StreamSpec."""
+    topic, sep, path = (text or "").partition(":")
+    if not sep or not topic.startswith("/") or not path:
+        raise UsageError(f"{option}: expected /topic:field.path (e.g. /cmd:data), got {text!r}")
+    try:
+        return StreamSpec(topic, parse_field_path(path))
+    except UsageError as exc:
+        raise UsageError(f"{option}: {exc}") from None
+
+
+def load_msg_config(path: str | Path) -> dict[str, Any]:
+    """The parameters of a msg_config YAML in ROS 2 params-file form
+    (``<node name>: {ros__parameters: {...}}``, e.g. ``hammer_ros`` or ``/**``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such config file")
+    try:
+        doc = yaml.safe_load(path.read_text())  # safe_load: plain data only, no Python objects
+    except UnicodeDecodeError:
+        raise UsageError(f"{path}: not a text (UTF-8) file") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise UsageError(f"{path}: not valid YAML{where} ({problem})") from None
+    if isinstance(doc, dict):
+        for section in doc.values():
+            if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+                return dict(section["ros__parameters"])
+    raise UsageError(f"{path}: expected a ROS 2 params file 'hammer_ros: {{ros__parameters: {{...}}}}'")
+
+
+def engine_config_from_params(params: dict[str, Any], source: str = "config",
+                              base: EngineConfig | None = None) -> EngineConfig:
+    """An EngineConfig from node-style parameters (unknown keys are an error naming them; ROS
+    parameters cannot be null, so ``mu: 0`` and ``partition: []`` mean the method's default)."""
+    fields = set(EngineConfig.__dataclass_fields__)
+    changes = {}
+    for key, value in params.items():
+        if key in TOPIC_KEYS or key in OTHER_KEYS:
+            continue
+        if key not in fields:
+            known = ", ".join(sorted(fields | set(TOPIC_KEYS) | set(OTHER_KEYS)))
+            raise UsageError(f"{source}: unknown parameter {key!r} (known: {known})")
+        if key == "mu" and value in (0, None):
+            value = None
+        elif key == "partition":
+            if value is not None and not isinstance(value, (list, tuple)):
+                raise UsageError(f"{source}: partition: must be a list of breakpoints, e.g. [-0.5, 0.5] "
+                                 f"(got {value!r})")
+            value = tuple(value) if value else None
+        changes[key] = value
+    try:
+        config = EngineConfig(**{**(base or EngineConfig()).__dict__, **changes})
+        return config.validated()
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"{source}: {exc}") from None
+
+
+def stream_specs(input_spec: str | None, output_spec: str | None, params: dict[str, Any] | None,
+                 source: str = "config") -> tuple[StreamSpec, StreamSpec]:
+    """(excitation, response) from --input/--output, falling back to the config's topics/fields."""
+    params = params or {}
+    specs = []
+    for option, role, text in (("--input", "excitation", input_spec), ("--output", "response", output_spec)):
+        if text:
+            specs.append(parse_stream_spec(text, option))
+            continue
+        topic, field = params.get(f"{role}_topic"), params.get(f"{role}_field")
+        if not topic or not field:
+            raise UsageError(f"{option}: give /topic:field or a --config with {role}_topic and {role}_field")
+        try:
+            specs.append(StreamSpec(str(topic), parse_field_path(str(field)), params.get(f"{role}_type")))
+        except UsageError as exc:
+            raise UsageError(f"{source}: {role}_field: {exc}") from None
+    return specs[0], specs[1]
+
+
+# ------------------------------------------------------------------------------- reading
+MAX_RECORD_BYTES = 256 * 2**20  # an MCAP record (chunk) claiming more is treated as damage, never allocated
+MAX_MESSAGE_BYTES = 16 * 2**20  # a message larger than this (2 M float64 samples) is skipped and counted
+MAX_RECORD_SAMPLES = 10_000_000  # identify/diagnose hold the aligned record in memory: at most this many samples
+FIELD_CHECK_MESSAGES = 100  # a field path must work in one of the first messages of its topic
+_warned: set[str] = set()
+
+
+def warn(text: str) -> None:
+    """One ``hammer-ros: warning:`` line on stderr (each distinct text once per command:
+    ``forget_warnings`` starts a command)."""
+    if text not in _warned:
+        _warned.add(text)
+        print(f"hammer-ros: warning: {text}", file=sys.stderr)
+
+
+def forget_warnings() -> None:
+    _warned.clear()
+
+
+@dataclass
+class BagReadStats:
+    """What reading a bag skipped; nothing is dropped silently (``warnings`` says what and why)."""
+
+    damage: list[str] = field(default_factory=list)  # where a file is truncated or corrupt
+    oversized: int = 0  # messages larger than MAX_MESSAGE_BYTES
+    undecodable: int = 0  # messages whose CDR bytes do not decode with their schema
+    field_errors: dict[str, int] = field(default_factory=dict)  # topic -> messages without the field
+    first_error: dict[str, str] = field(default_factory=dict)  # kind or topic -> the first reason
+
+    def note(self, key: str, reason: str) -> None:
+        self.first_error.setdefault(key, reason)
+
+    def warnings(self, path: str | Path) -> list[str]:
+        lines = list(self.damage)
+        if self.oversized:
+            lines.append(f"{path}: {self.oversized} message(s) over {MAX_MESSAGE_BYTES // 2**20} MiB skipped "
+                         f"({self.first_error['oversized']})")
+        if self.undecodable:
+            lines.append(f"{path}: {self.undecodable} message(s) that do not decode skipped "
+                         f"({self.first_error['undecodable']})")
+        lines.extend(f"{path}: {n} message(s) on {topic} skipped ({self.first_error[topic]})"
+                     for topic, n in self.field_errors.items())
+        return lines
+
+    def report(self, path: str | Path) -> None:
+        for line in self.warnings(path):
+            warn(line)
+
+
+def bag_files(path: str | Path) -> list[Path]:
+    """The .mcap files of a bag: the file itself, or those listed in a rosbag2 metadata.yaml
+    (without a usable metadata.yaml, e.g. a recording that was killed: the directory's .mcap
+    files in name order, with a warning)."""
+    path = Path(path)
+    if not path.exists():
+        raise UsageError(f"{path}: no such bag (expected a .mcap file or a rosbag2 directory)")
+    if path.is_file():
+        if path.suffix.lower() != ".mcap":
+            raise UsageError(f"{path}: not a .mcap file")
+        return [path]
+    meta = path / "metadata.yaml"
+    found = sorted(p for p in path.glob("*.mcap") if p.is_file())
+    if not meta.is_file():
+        if not found:
+            raise UsageError(f"{path}: not a rosbag2 directory (no metadata.yaml and no .mcap files)")
+        warn(f"{path}: no metadata.yaml; reading its {len(found)} .mcap file(s) in name order")
+        return found
+    try:
+        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+        storage = info.get("storage_identifier", "mcap")
+        files = [path / f for f in info.get("relative_file_paths", [])]
+    except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
+        if not found:
+            raise UsageError(f"{meta}: not a rosbag2 metadata file (and no .mcap files beside it)") from None
+        warn(f"{meta}: not a rosbag2 metadata file; reading the {len(found)} .mcap file(s) in name order")
+        return found
+    if storage != "mcap":
+        raise UsageError(f"{path}: storage {storage!r} is not supported (record with -s mcap)")
+    files = files or found
+    missing = [f for f in files if not f.is_file()]
+    if not files or missing:
+        raise UsageError(f"{path}: bag file {missing[0] if missing else '*.mcap'} is missing")
+    return files
+
+
+class _RecordScan:
+    """A sequential, fault-tolerant read of one MCAP file (no summary needed, so an unfinished
+    recording is read too). ``groups()`` yields the records of each chunk as one list (a record
+    outside chunks as a list of one). A chunk that fails its CRC, decompression or parsing is
+    skipped; a record that cannot be read ends the file (its length is unknown, nothing after it
+    can be found). ``damage`` says where, in bytes from the start of the file."""
+
+    def __init__(self, file: Path) -> None:
+        self.file = file
+        self.damage: list[str] = []
+        self.header_seen = False
+        self.messages = 0  # message records read (chunks included)
+
+    def groups(self) -> Iterator[list[Any]]:
+        from mcap.exceptions import McapError
+        from mcap.records import Chunk, Header
+        from mcap.stream_reader import StreamReader
+
+        size = self.file.stat().st_size
+        with open(self.file, "rb") as fh:
+            records = StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
+            offset = 0
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    return
+                except (McapError, ValueError, EOFError, OSError, struct.error) as exc:
+                    truncated = isinstance(exc, (EOFError, struct.error)) or type(exc).__name__ == "EndOfFile"
+                    what = "truncated: the file ends inside the record" if truncated else f"unreadable ({_reason(exc)})"
+                    self.damage.append(f"{what} at byte {offset:,} of {size:,}; "
+                                       f"read the {self.messages} messages before it")
+                    return
+                if isinstance(record, Header):
+                    self.header_seen = True
+                group = self._chunk(record, offset) if isinstance(record, Chunk) else [record]
+                self.messages += sum(type(r).__name__ == "Message" for r in group)
+                if group:
+                    yield group
+                offset = fh.tell()
+
+    def _chunk(self, chunk, offset: int) -> list[Any]:
+        from mcap.stream_reader import breakup_chunk
+
+        if chunk.uncompressed_size > MAX_RECORD_BYTES:
+            self.damage.append(f"chunk at byte {offset:,} claims {chunk.uncompressed_size:,} bytes; skipped")
+            return []
+        try:
+            return breakup_chunk(chunk, validate_crc=True)
+        except Exception as exc:  # damaged data fails in many ways inside zstd/lz4/the parser
+            self.damage.append(f"chunk at byte {offset:,} is corrupt ({_reason(exc)}); skipped")
+            return []
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+@dataclass(frozen=True, eq=False)
+class FileIndex:
+    """The schemas, channels and message counts of one MCAP file (from its summary, else from a
+    scan of its records); ``damage`` says where the scan found it broken."""
+
+    file: Path
+    schemas: dict[int, Any]
+    channels: dict[int, Any]
+    counts: dict[int, int]
+    damage: tuple[str, ...]
+
+
+def file_index(file: Path) -> FileIndex:
+    stat = file.stat()
+    return _file_index(str(file), stat.st_mtime_ns, stat.st_size)
+
+
+@functools.lru_cache(maxsize=32)
+def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
+    from mcap.exceptions import InvalidMagic, McapError
+    from mcap.reader import SeekingReader
+    from mcap.records import Channel, Message, Schema
+
+    path = Path(file)
+    summary = None
+    try:
+        with open(path, "rb") as fh:
+            summary = SeekingReader(fh, record_size_limit=MAX_RECORD_BYTES).get_summary()
+    except InvalidMagic:
+        raise UsageError(f"{path}: not an MCAP file (wrong magic bytes)") from None
+    except (McapError, ValueError, EOFError, OSError, struct.error):
+        summary = None  # no footer or summary: an unfinished or damaged recording, scanned below
+    if summary is not None and summary.statistics is not None:
+        return FileIndex(path, dict(summary.schemas), dict(summary.channels),
+                         dict(summary.statistics.channel_message_counts), ())
+    scan = _RecordScan(path)
+    schemas, channels, counts = {}, {}, {}
+    for group in scan.groups():
+        for record in group:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Message):
+                counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+    if not scan.header_seen:
+        reason = scan.damage[0] if scan.damage else "no MCAP header record"
+        raise UsageError(f"{path}: not a readable MCAP file ({'empty file' if size == 0 else reason})")
+    return FileIndex(path, schemas, channels, counts, tuple(scan.damage))
+
+
+def bag_topics(path: str | Path) -> dict[str, str]:
+    """topic -> ROS type name of every channel in the bag."""
+    topics = {}
+    for file in bag_files(path):
+        index = file_index(file)
+        for channel in index.channels.values():
+            schema = index.schemas.get(channel.schema_id)
+            topics[channel.topic] = schema.name if schema else ""
+    return topics
+
+
+def bag_message_counts(path: str | Path) -> dict[str, int]:
+    """topic -> number of messages (from the MCAP summaries, else counted by a scan)."""
+    counts: dict[str, int] = {}
+    for file in bag_files(path):
+        index = file_index(file)
+        for channel_id, count in index.counts.items():
+            channel = index.channels.get(channel_id)
+            if channel is not None:
+                counts[channel.topic] = counts.get(channel.topic, 0) + count
+    return counts
+
+
+def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, str]:
+    """The bag's topic types; a UsageError when a spec's topic is absent, of another type, or
+    not decodable (not ROS 2 CDR with a ros2msg schema). Other topics are never decoded, so
+    unknown schemas there do not matter."""
+    topics = bag_topics(path)
+    for spec in specs:
+        if spec.topic not in topics:
+            damage = [d for f in bag_files(path) for d in file_index(f).damage]
+            note = f"; damaged file: {damage[0]}" if damage else ""
+            raise UsageError(f"{path}: no topic {spec.topic!r} (topics: {', '.join(sorted(topics)) or 'none'}){note}")
+        wanted, found = _normal_type(spec.type_name), _normal_type(topics[spec.topic])
+        if wanted and found and wanted != found:
+            raise UsageError(f"{path}: topic {spec.topic} has type {topics[spec.topic]}, config says {spec.type_name}")
+    wanted_topics = {spec.topic for spec in specs}
+    for file in bag_files(path):
+        decoders = _Decoders(file_index(file))
+        for channel in decoders.index.channels.values():
+            if channel.topic in wanted_topics:
+                decoders.get(channel)
+    return topics
+
+
+def _normal_type(name: str | None) -> str:
+    """'pkg/msg/Name' and 'pkg/Name' compare equal."""
+    if not name:
+        return ""
+    parts = name.split("/")
+    return f"{parts[0]}/{parts[-1]}"
+
+
+class _Decoders:
+    """CDR decoders of one file's channels, built from the ros2msg schemas stored in the bag."""
+
+    def __init__(self, index: FileIndex) -> None:
+        from mcap_ros2.decoder import DecoderFactory
+
+        self.index = index
+        self.schemas = dict(index.schemas)
+        self.channels = dict(index.channels)
+        self._factory = DecoderFactory()
+        self._decoders: dict[int, Any] = {}
+
+    def get(self, channel) -> Any:
+        decoder = self._decoders.get(channel.id)
+        if decoder is not None:
+            return decoder
+        schema = self.schemas.get(channel.schema_id)
+        where = f"{self.index.file}: topic {channel.topic}"
+        if schema is None:
+            raise UsageError(f"{where}: no schema stored for it, cannot decode")
+        try:
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)
+        except Exception as exc:  # the schema text comes from the file: any parse failure
+            raise UsageError(f"{where}: cannot parse its schema {schema.name!r} ({_reason(exc)})") from None
+        if decoder is None:
+            raise UsageError(f"{where}: {channel.message_encoding!r} messages with a {schema.encoding!r} schema "
+                             "are not ROS 2 CDR/ros2msg, cannot decode")
+        self._decoders[channel.id] = decoder
+        return decoder
+
+
+RECENT_BYTES = 1 << 20  # messages this big are kept decoded (at most RECENT_COUNT): check_fields, then the read
+RECENT_COUNT = 2
+_recently_decoded: dict[tuple, Any] = {}
+
+
+def iter_bag_messages(path: str | Path, topics: list[str],
+                      stats: BagReadStats | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time in ns, decoded message) of ``topics`` in log-time order (per chunk;
+    files merged by log time). Damaged chunks, messages over MAX_MESSAGE_BYTES and messages that
+    do not decode are skipped and counted in ``stats``; only ``topics`` are decoded."""
+    import heapq
+
+    from mcap.records import Channel, Message, Schema
+
+    stats = stats if stats is not None else BagReadStats()
+    wanted = set(topics)
+
+    def one_file(file: Path):
+        decoders = _Decoders(file_index(file))
+        scan = _RecordScan(file)
+        for group in scan.groups():
+            messages = []
+            for record in group:
+                if isinstance(record, Message):
+                    channel = decoders.channels.get(record.channel_id)
+                    if channel is not None and channel.topic in wanted:
+                        messages.append((record.log_time, channel, record))
+                elif isinstance(record, Channel):
+                    decoders.channels.setdefault(record.id, record)
+                elif isinstance(record, Schema):
+                    decoders.schemas.setdefault(record.id, record)
+            messages.sort(key=lambda m: m[0])
+            for log_time, channel, record in messages:
+                if len(record.data) > MAX_MESSAGE_BYTES:
+                    stats.oversized += 1
+                    stats.note("oversized", f"{channel.topic}: {len(record.data):,} bytes")
+                    continue
+                key = (str(file), channel.id, record.sequence, log_time)
+                decoded = _recently_decoded.get(key)
+                try:
+                    decoded = decoders.get(channel)(record.data) if decoded is None else decoded
+                except Exception as exc:  # corrupt CDR bytes fail in many ways
+                    stats.undecodable += 1
+                    stats.note("undecodable", f"{channel.topic}: {_reason(exc)}")
+                    continue
+                if len(record.data) > RECENT_BYTES and key not in _recently_decoded:
+                    while len(_recently_decoded) >= RECENT_COUNT:
+                        _recently_decoded.pop(next(iter(_recently_decoded)))
+                    _recently_decoded[key] = decoded
+                yield log_time, channel.topic, decoded
+        stats.damage.extend(f"{file}: {d}" for d in scan.damage if f"{file}: {d}" not in stats.damage)
+
+    for log_time, topic, decoded in heapq.merge(*(one_file(f) for f in bag_files(path)), key=lambda m: m[0]):
+        yield topic, log_time, decoded
+
+
+def check_fields(path: str | Path, specs: tuple[StreamSpec, ...]) -> None:
+    """A UsageError when a spec's topic has no messages or its field is in none of the first
+    FIELD_CHECK_MESSAGES messages of the topic (later messages without it are skipped and counted)."""
+    counts = bag_message_counts(path)
+    for spec in specs:
+        if not counts.get(spec.topic):
+            raise UsageError(f"{path}: topic {spec.topic} has no messages")
+    pending = {spec.topic: [s for s in specs if s.topic == spec.topic] for spec in specs}
+    first_error: dict[str, str] = {}
+    tried: dict[str, int] = {}
+    read = BagReadStats()
+    for topic, _, msg in iter_bag_messages(path, list(pending), read):
+        for spec in list(pending.get(topic, ())):
+            try:
+                extract_samples(msg, spec.field)
+                pending[topic].remove(spec)
+            except UsageError as exc:
+                first_error.setdefault(topic, str(exc))
+        tried[topic] = tried.get(topic, 0) + 1
+        pending = {t: s for t, s in pending.items() if s}
+        if not pending or any(tried.get(t, 0) >= FIELD_CHECK_MESSAGES for t in pending):
+            break
+    for topic in pending:
+        problems = read.warnings(path)
+        reason = first_error.get(topic) or "no message could be read" + (f" ({problems[0]})" if problems else "")
+        raise UsageError(f"{path}: topic {topic}: {reason}")
+
+
+@dataclass(frozen=True, eq=False)
+class BagSample:
+    """The samples one message contributes to a stream."""
+
+    stream: str  # "excitation" or "response"
+    stamp: float  # header stamp or log time (s): the time of the LAST sample
+    values: np.ndarray
+    log_time: int  # ns
+
+
+def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
+                     stats: BagReadStats | None = None) -> Iterator[BagSample]:
+    """The excitation and response samples of the bag, message by message in log-time order.
+    When both specs name the same topic, each message feeds both streams. A message without the
+    field is skipped and counted in ``stats.field_errors`` (``check_fields`` first rejects a field
+    that no message has)."""
+    stats = stats if stats is not None else BagReadStats()
+    check_topics(path, (excitation, response))
+    roles: dict[str, list[tuple[str, StreamSpec]]] = {}
+    for role, spec in (("excitation", excitation), ("response", response)):
+        roles.setdefault(spec.topic, []).append((role, spec))
+    for topic, log_time, msg in iter_bag_messages(path, list(roles), stats):
+        stamp = message_stamp(msg)
+        stamp = log_time * 1e-9 if not stamp else stamp
+        for role, spec in roles[topic]:
+            try:
+                values = extract_samples(msg, spec.field)
+            except UsageError as exc:
+                stats.field_errors[topic] = stats.field_errors.get(topic, 0) + 1
+                stats.note(topic, str(exc))
+                continue
+            yield BagSample(role, stamp, values, log_time)
+
+
+def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec: str | None = None,
+                    config: str | Path | None = None) -> Record:
+    """All aligned samples of a bag as a Record (the streaming engine's alignment, without the
+    window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
+    gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
+    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window)."""
+    forget_warnings()
+    params = load_msg_config(config) if config else {}
+    engine_config = engine_config_from_params(params, str(config or "config"))
+    excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
+    check_topics(path, (excitation, response))
+    check_fields(path, (excitation, response))
+    chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    stats = EngineStats(sample_rate=engine_config.sample_rate)
+    aligner = StreamAligner(engine_config, stats, lambda t, v, y: chunks.append((t, v, y)), lambda: None)
+    read = BagReadStats()
+    for sample in iter_bag_samples(path, excitation, response, read):
+        aligner.add_message(sample.stream, sample.stamp, sample.values, flush=False)
+        if aligner.buffered >= FLUSH_SAMPLES:
+            aligner.flush()
+            if stats.aligned > MAX_RECORD_SAMPLES:
+                raise UsageError(f"{path}: more than {MAX_RECORD_SAMPLES:,} aligned samples, too many to identify "
+                                 "in one batch; use `hammer-ros replay` (a sliding window) or cut the bag")
+    aligner.flush()
+    read.report(path)
+    if not chunks:
+        raise UsageError(f"{path}: no aligned samples of {excitation} and {response} "
+                         f"({stats.received_excitation} and {stats.received_response} received)")
+    if stats.gaps:
+        print(f"hammer-ros: {path}: {stats.gaps} gap(s) in the streams; segments concatenated", file=sys.stderr)
+    t, v, y = (np.concatenate(parts) for parts in zip(*chunks))
+    return Record(v, y, t, str(path))
+
+
+# ------------------------------------------------------------------------------- writing
+def message_definition(type_name: str) -> str:
+    """The ``ros2msg`` schema text of a type: its .msg text followed by every nested type's,
+    each after a line of 80 '=' and ``MSG: pkg/Name`` (the layout rosbag2 writes)."""
+    package, name = _split_type(type_name)
+    parts, seen, order = {}, set(), []
+
+    def visit(pkg: str, msg: str) -> None:
+        key = f"{pkg}/{msg}"
+        if key in seen:
+            return
+        seen.add(key)
+        text = _msg_text(pkg, msg)
+        parts[key] = text
+        order.append(key)
+        for dep_pkg, dep_msg in _dependencies(text, pkg):
+            visit(dep_pkg, dep_msg)
+
+    visit(package, name)
+    text = parts[order[0]]
+    for key in order[1:]:
+        text += f"\n{SCHEMA_SEPARATOR}\nMSG: {key}\n{parts[key]}"
+    return text
+
+
+def _split_type(type_name: str) -> tuple[str, str]:
+    parts = type_name.split("/")
+    if len(parts) not in (2, 3) or (len(parts) == 3 and parts[1] != "msg"):
+        raise UsageError(f"message type {type_name!r}: expected pkg/msg/Name")
+    return parts[0], parts[-1]
+
+
+def _msg_text(package: str, name: str) -> str:
+    for root in (SCHEMA_DIR, Path(sys.prefix) / "share"):
+        file = root / package / "msg" / f"{name}.msg"
+        if file.is_file():
+            return file.read_text()
+    raise UsageError(f"message type {package}/msg/{name}: no .msg definition found")
+
+
+def _dependencies(text: str, package: str) -> list[tuple[str, str]]:
+    """The nested message types of a .msg text, as (package, name); constants (``byte OK=0``)
+    and primitive fields are skipped, a bare ``Name`` is in the same package."""
+    deps = []
+    for line in text.splitlines():
+        tokens = line.split("#", 1)[0].split()
+        if len(tokens) < 2 or "=" in line.split("#", 1)[0]:
+            continue
+        base = re.sub(r"(<=\d+)?(\[[^\]]*\])?$", "", tokens[0])
+        if base in PRIMITIVES:
+            continue
+        pkg, _, msg = base.rpartition("/")
+        deps.append((pkg.split("/")[0] if pkg else package, msg))
+    return deps
+
+
+def node_topic(topic: str, node_name: str = "hammer_ros") -> str:
+    """'~/model' -> '/hammer_ros/model' (the private namespace of the node)."""
+    return f"/{node_name}/{topic[2:]}" if topic.startswith("~/") else topic
+
+
+class ResultWriter:
+    """An MCAP file of ROS 2 messages given as dicts (``outputs`` form); use as a context manager
+    (the file is finished and closed on exit, also after an error)."""
+
+    def __init__(self, path: str | Path, option: str = "--out") -> None:
+        from mcap_ros2.writer import Writer
+
+        self.path = Path(path)
+        if self.path.suffix.lower() != ".mcap":
+            raise UsageError(f"{option}: {self.path}: the file name must end in .mcap")
+        try:
+            self._file = open(self.path, "wb")
+        except OSError as exc:
+            raise UsageError(f"{option}: {self.path}: {exc.strerror}") from None
+        self._writer = Writer(self._file)
+        self._schemas: dict[str, Any] = {}
+        self.count = 0
+
+    def write(self, topic: str, type_name: str, message: dict, log_time_ns: int) -> None:
+        schema = self._schemas.get(type_name)
+        if schema is None:
+            schema = self._schemas[type_name] = self._writer.register_msgdef(type_name,
+                                                                             message_definition(type_name))
+        self._writer.write_message(topic, schema, message, log_time=int(log_time_ns), publish_time=int(log_time_ns))
+        self.count += 1
+
+    def close(self) -> None:
+        if not self._file.closed:
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

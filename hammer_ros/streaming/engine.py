@@ -1,0 +1,299 @@
+"""The streaming identification engine (pure numpy; the ROS node and ``replay`` are thin adapters).
+
+Pipeline, per batch of timestamped samples of either stream:
+
+1. **Screening.** Non-finite values or stamps, and values above MAX_ABS_SAMPLE, are skipped
+   (``nan_skipped``). A stamp equal to the newest accepted stamp of its stream is a
+   ``duplicate``, an older one is ``late``; both are skipped (the grid only moves forward). When
+   both streams jump back by more than max(1 s, max_gap) (sim time reset, bag loop) the
+   alignment restarts on the new timeline (``clock_resets``). Samples waiting for the other
+   stream are bounded (``pending_cap``; the oldest are dropped: ``overflow``).
+2. **Alignment** on one grid. With ``sample_rate`` fs > 0 the grid is t_k = t_a + k / fs,
+   anchored at the first excitation stamp t_a (re-anchored after an excitation gap), so a
+   uniformly sampled command lands on it exactly. With ``sample_rate`` 0 the excitation stamps
+   themselves are the grid (the command clocks the identification; no drift against a
+   slightly-off nominal rate) and fs, estimated from the median spacing of the first 16
+   excitation stamps, only sets the tolerances. A grid point is emitted once BOTH streams have
+   a sample at or after it; its values are the zero-order hold (last sample with stamp
+   <= t_k + tol) or the linear interpolation of each stream, tol = 0.01 / fs.
+3. **Gap policy.** Consecutive stamps of one stream further apart than ``max_gap`` (default
+   5 / fs) are a gap: the grid points inside the gap are not emitted and the window restarts
+   empty after it (``gaps`` counts the restarts). Samples on both sides of a gap are never
+   mixed in one lag product or regression row; the last model stays valid until the new window
+   is ``min_fill`` full again.
+4. **Correlation sums** over the window of the last W aligned samples (paper 000 eq. 8 and
+   Remark 2): with L = min(W, samples) and T = tau_max, the centres k = T .. L-1-T give
+   N + 1 = L - 2T products per lag,
+
+       phi_vv(tau)  = 1/(N+1) sum_k v(k) v(k-tau)
+       phi_yv(tau)  = 1/(N+1) sum_k y(k) v(k-tau)
+       phi_yvv(tau) = 1/(N+1) sum_k y(k) v(k-tau)^2      (second order, paper 003 eq. 21)
+
+   for tau = -T..T: exactly ``correlation.cross_correlation`` on the window. A new sample
+   completes the centre k = newest - T, whose O(T) products are formed once (vectorised per
+   chunk: one C correlation loop per row, or real FFTs from T = FFT_MIN_TAU_MAX) into a block
+   of consecutive centres; a block leaves the sums whole once the window has passed it, and
+   the part of the oldest block already outside is subtracted when the correlations are read.
+   Every W samples the sums are re-added from the blocks, so rounding cannot drift.
+   With ``forgetting`` lambda < 1 the sums are instead exponentially weighted over every centre
+   since the window (re)started: weight lambda^(c - k) for centre k when the newest centre is c,
+   divided by the total weight (``correlation.weighted_cross_correlation`` is the batch form).
+5. **Solve** on an immutable snapshot (``solve_snapshot``, safe in a worker thread): CLS ARX /
+   mu-Markov step 1 on the correlation sums, step 2 on the raw window; any other method through
+   ``methods.identify`` on the raw window. No model (``status``) while the window fills, when
+   the input is not persistently exciting (absolutely, or relative to the windows behind the
+   published models: ``min_excitation``), when the published model fits the window clearly
+   better (``kept``), or when the method fails or raises (never propagated).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from ..errors import HammerRosError, UsageError
+from ..identification.methods import identify
+from ..identification.result import IdentificationResult, fit_percent
+from .aligner import StreamAligner
+from .config import CLS_STRUCTURES, KEEP_MARGIN, PE_CONDITION_LIMIT, EngineConfig, EngineStats
+from .correlation_window import CorrelationWindow
+
+
+@dataclass(frozen=True, eq=False)
+class EngineSnapshot:
+    """Everything a solve needs, copied out of the engine (immutable by convention)."""
+
+    config: EngineConfig
+    phi_vv: np.ndarray  # normalised correlations, index tau + tau_max
+    phi_yv: np.ndarray
+    phi_yvv: np.ndarray
+    weight: float  # number of products N + 1 (sliding window) or total weight (forgetting)
+    v: np.ndarray  # raw window (aligned samples, oldest first)
+    y: np.ndarray
+    stamp: float  # grid time of the newest sample (nan before the first)
+    stats: EngineStats
+    published: IdentificationResult | None = None  # the model published last (see ``solve_snapshot``)
+    reference_std: float = 0.0  # largest input std of the windows behind the published models
+
+
+
+@dataclass(frozen=True, eq=False)
+class SolveOutcome:
+    """The result of one solve; ``reason`` says why when not ``ok``."""
+
+    ok: bool
+    reason: str
+    result: IdentificationResult | None
+    doc: dict | None  # the identify --json document (contract keys)
+    condition_number: float  # of the input autocorrelation matrix (persistent excitation)
+    solve_seconds: float
+    samples: int
+    stamp: float
+    status: str = "ok"  # ok | filling | not_exciting | kept | failed (the method rejected the data) | exception
+    input_std: float = float("nan")  # of the window's input
+
+
+
+class StreamingEngine:
+    """Aligns excitation and response streams, keeps the correlation sums and the raw window."""
+
+    def __init__(self, config: EngineConfig | None = None) -> None:
+        self._config = (config or EngineConfig()).validated()
+        self.stats = EngineStats(sample_rate=self._config.sample_rate)
+        self._corr = CorrelationWindow(self._config.window, self._config.tau_max, self._config.forgetting)
+        self._aligner = StreamAligner(self._config, self.stats, self._append_aligned, self._corr.reset)
+        self._stamp = float("nan")
+        self._published: IdentificationResult | None = None
+        self._reference_std = 0.0
+
+    @property
+    def config(self) -> EngineConfig:
+        return self._config
+
+    @property
+    def sample_rate(self) -> float | None:
+        """Grid rate in Hz (configured or inferred), None while still inferring."""
+        return self._aligner.rate
+
+    # ---------------------------------------------------------------- configuration
+    def reconfigure(self, **changes) -> None:
+        """Apply validated changes live. window / tau_max / forgetting rebuild the sums from the
+        raw window (no sample is lost); sample_rate re-grids (the window restarts, since samples
+        at two rates cannot share lag products); other fields only affect the next solve."""
+        names = {f.name for f in fields(EngineConfig)}
+        for name in changes:
+            if name not in names:
+                raise UsageError(f"{name}: unknown engine setting (known: {', '.join(sorted(names))})")
+        if "partition" in changes and changes["partition"] is not None:
+            changes["partition"] = tuple(float(c) for c in changes["partition"])
+        new = replace(self._config, **changes).validated()
+        old, self._config = self._config, new
+        self._published, self._reference_std = None, 0.0  # new settings: the next estimate is published
+        self._aligner.config = new
+        if (new.window, new.tau_max, new.forgetting) != (old.window, old.tau_max, old.forgetting):
+            self._corr.rebuild(new.window, new.tau_max, new.forgetting)
+        if new.sample_rate != old.sample_rate:
+            self._corr.reset()
+            self._aligner.regrid(new)
+        self._update_fill()
+
+    # ---------------------------------------------------------------- ingestion
+    def add_excitation(self, t: np.ndarray, v: np.ndarray) -> int:
+        """Add samples v at stamps t (s); returns how many were accepted."""
+        return self._aligner.add("excitation", t, v)
+
+    def add_response(self, t: np.ndarray, y: np.ndarray) -> int:
+        """Add samples y at stamps t (s); returns how many were accepted."""
+        return self._aligner.add("response", t, y)
+
+    def message_stamps(self, stream: str, stamp: float, count: int) -> np.ndarray | None:
+        """See ``StreamAligner.message_stamps`` (batch convention: last sample at the stamp)."""
+        return self._aligner.message_stamps(stream, stamp, count)
+
+    def add_message(self, stream: str, stamp: float, values: np.ndarray, flush: bool = True) -> int:
+        """Add one message's samples of ``stream`` ("excitation" or "response"); with
+        ``flush=False`` buffer them until ``flush()`` (see ``StreamAligner.add_message``)."""
+        return self._aligner.add_message(stream, stamp, values, flush)
+
+    def flush(self) -> int:
+        """Add the messages buffered with ``add_message(..., flush=False)``."""
+        return self._aligner.flush()
+
+    def add_streams(self, batches: dict[str, tuple[np.ndarray, np.ndarray]]) -> int:
+        """Add (stamps, values) of both streams at once, interleaved in time (``StreamAligner.add_both``)."""
+        return self._aligner.add_both(batches)
+
+    @property
+    def buffered(self) -> int:
+        """Samples buffered by ``add_message(..., flush=False)`` and not yet flushed."""
+        return self._aligner.buffered
+
+    def _append_aligned(self, grid: np.ndarray, v: np.ndarray, y: np.ndarray) -> None:
+        self._corr.add(v, y)
+        self._stamp = float(grid[-1])
+        self._update_fill()
+
+    def _update_fill(self) -> None:
+        n = self._corr.count - self._corr.window_start
+        self.stats.window_samples = n
+        self.stats.window_fill = n / self._config.window
+
+    # ---------------------------------------------------------------- solving
+    def snapshot(self) -> EngineSnapshot:
+        v, y = self._corr.raw()
+        phi_vv, phi_yv, phi_yvv = self._corr.correlations()
+        return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
+                              self.stats.copy(), self._published, self._reference_std)
+
+    def solve(self) -> SolveOutcome:
+        """Solve on the current window (synchronously) and count it in the stats."""
+        outcome = solve_snapshot(self.snapshot())
+        self.record(outcome)
+        return outcome
+
+    def record(self, outcome: SolveOutcome) -> None:
+        """Count a solve (done here or in a worker thread) in the stats."""
+        if outcome.ok:
+            self.stats.solves += 1
+            self._published = outcome.result
+            self._reference_std = max(self._reference_std, outcome.input_std)
+            return
+        self.stats.solve_errors += 1
+        if outcome.status == "not_exciting":
+            self.stats.not_exciting += 1
+        elif outcome.status == "kept":
+            self.stats.kept_published += 1
+        elif outcome.status == "failed":
+            self.stats.solve_failures += 1
+        elif outcome.status == "exception":
+            self.stats.solve_exceptions += 1
+
+
+
+def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) -> float:
+    """cond(R_p) of the input autocorrelation (Toeplitz) matrix R_p = [phi_vv(i - j)], p = 2n + 1
+    (capped at tau_max + 1): the input is persistently exciting of order p when R_p is well
+    conditioned (Ljung, System Identification, sec. 13.2). Uncentred, so a constant input gives a
+    rank-one R_p; a sinusoid is exciting of order 2 only, a sum of s sinusoids of order 2s."""
+    p = min(2 * order + 1, tau_max + 1)
+    one_sided = 0.5 * (phi_vv[tau_max : tau_max + p] + phi_vv[tau_max::-1][:p])
+    idx = np.arange(p)
+    eig = np.linalg.eigvalsh(one_sided[np.abs(idx[:, None] - idx[None, :])])
+    if eig[-1] <= 0 or eig[0] <= eig[-1] * 1e-300:
+        return float("inf")
+    return float(eig[-1] / eig[0])
+
+
+
+def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
+    """Identify the configured model on a snapshot (pure; may run in a worker thread).
+
+    CLS (paper 000 sec. 3.1): step 1 on the snapshot's correlation sums, step 2 on the raw
+    window; other methods: ``methods.identify`` on the raw window. Not ok (with the reason) when
+    the window is not ``min_fill`` full, the input is not persistently exciting or the method
+    fails on the data."""
+    started = time.perf_counter()
+    cfg, v, y = snapshot.config, snapshot.v, snapshot.y
+
+    spread = float("nan")
+
+    def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok") -> SolveOutcome:
+        return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp,
+                            status, spread)
+
+    needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
+    if v.size < needed or snapshot.weight <= 0:
+        return outcome(False, f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)",
+                       status="filling")
+    with np.errstate(all="ignore"):
+        cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
+    spread = float(np.std(v))
+    if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
+        return outcome(False, f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
+                       cond=cond, status="not_exciting")
+    reference = snapshot.reference_std
+    if spread < cfg.min_excitation * reference:
+        return outcome(False, f"not persistently exciting (input std {spread:.3g} is {100 * spread / reference:.1f} % "
+                              f"of the {reference:.3g} behind the published model, min_excitation "
+                              f"{cfg.min_excitation:g})", cond=cond, status="not_exciting")
+    try:
+        with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
+            if cfg.method in CLS_STRUCTURES:
+                from ..identification.correlation_least_squares import cls_from_correlations
+
+                result = cls_from_correlations(snapshot.phi_vv, snapshot.phi_yv, v, y, cfg.identify_options(),
+                                               structure=CLS_STRUCTURES[cfg.method])
+            else:
+                result = identify(cfg.method, v, y, cfg.identify_options())
+            doc = result.to_json(v, y)
+            kept = _published_fits_better(snapshot.published, v, y, doc.get("fit_percent"))
+    except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
+        return outcome(False, f"{cfg.method}: {exc}", cond=cond, status="failed")
+    except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
+        return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", cond=cond,
+                       status="exception")
+    finite = np.all(np.isfinite(result.linear.a)) and np.all(np.isfinite(result.linear.b))
+    if not finite:
+        return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond, status="failed")
+    if kept:
+        return outcome(False, f"kept the published model: it fits the window better ({kept})", cond=cond,
+                       status="kept")
+    return outcome(True, "", result, doc, cond)
+
+
+
+def _published_fits_better(published: IdentificationResult | None, v: np.ndarray, y: np.ndarray,
+                           new_fit: float | None) -> str:
+    """'' or why the published model stays: on a window that says little (a fading excitation,
+    noise), a new estimate can be far off; it replaces the published model unless the published
+    model simulates the window better by more than KEEP_MARGIN fit points."""
+    if published is None:
+        return ""
+    old_fit = fit_percent(y, published.simulate(v))
+    new = -np.inf if new_fit is None else new_fit
+    if not np.isfinite(old_fit) or new >= old_fit - KEEP_MARGIN:
+        return ""
+    return f"fit {old_fit:.1f} % vs {new:.1f} % for the new estimate"

@@ -1,0 +1,853 @@
+"""``hammer-ros bench``: speed and accuracy of hammer_ros beside a reference measured in the same run.
+
+The machine is shared and noisy, so every figure stands beside a reference computed in the same
+process (or the same minute) on the same data, and the comparison is a ratio of medians over
+repeated runs (ingest: the median of the per-repeat ratios, engine and reference interleaved).
+Sections (``--quick`` runs each on smaller sizes):
+
+1. **ingest**: samples/s through ``StreamingEngine`` (alignment + correlation sums, fed in chunks
+   as the node and replay do) for tau_max 50 / 200, several windows W, sliding window and
+   forgetting; reference: the same three correlation functions (phi_vv, phi_yv, phi_yvv of
+   paper 000 eq. 8, weighted for forgetting) of the whole record in one batch by real FFTs.
+2. **node**: the highest publish rate at which the live node loses no sample (single-sample and
+   100-sample messages) vs a bare rclpy subscriber (EventsExecutor in a spin_once loop), both
+   over DDS on a private ROS_DOMAIN_ID (``ros_rate_probe``).
+3. **replay**: samples/s of ``hammer-ros replay`` on a generated bag vs a bare MCAP read + CDR
+   decode (mcap_ros2) of the same bag and field.
+4. **solve**: p50 / p99 latency of one solve on an engine snapshot (what the node does) per
+   method, window, tau_max and mu; reference: batch ``identify`` on the same window.
+5. **peers**: identification time and free-run validation NRMSE of hammer_ros's methods vs
+   SysIdentPy FROLS (polynomial basis) on paper 000's G1 with tanh(8v)/8 and on real records.
+6. **memory**: peak resident memory of the engine (a fresh process) for W = 1e4, 1e5, 1e6.
+
+NRMSE = ||y - y_sim|| / ||y - mean(y)|| on the validation record (= 1 - fit_percent / 100).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import cProfile
+import csv
+import datetime
+import importlib.util
+import io
+import json
+import math
+import os
+import platform
+import pstats
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.fft
+
+from ..errors import UsageError
+from ..identification.correlation_least_squares import DEFAULT_MU, default_tau_max
+from ..identification.excitation import gaussian_white_noise
+from ..identification.methods import IdentifyOptions, identify
+from ..identification.simulate import HammersteinStream, simulate_hammerstein
+from ..streaming.config import EngineConfig
+from ..streaming.engine import StreamingEngine, solve_snapshot
+from .process_status import process_status_kib
+from .reproduce.cls import G1, INPUT_STD, NONLINEARITIES
+
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
+SAMPLE_RATE = 1000.0  # Hz of the generated streams
+SYSIDENTPY_VERSION = "0.9.0"  # requirements/bench.txt
+F2 = NONLINEARITIES["F2"][1]  # tanh(8 v) / 8, paper 000
+
+
+# ------------------------------------------------------------------------------------ plans
+@dataclass(frozen=True)
+class Plan:
+    """Sizes of one bench run (``QUICK`` under 3 min, ``FULL`` under 15 min on 2 cores)."""
+
+    name: str
+    repeats: int  # repeats of each timed run (medians)
+    ingest_samples: int
+    ingest_taus: tuple[int, ...]
+    ingest_windows: tuple[int, ...]
+    ingest_forgetting: tuple[float, ...]
+    ingest_chunk: int
+    node_rates: dict[int, tuple[float, ...]]  # samples per message -> message rates (per topic) to try
+    node_seconds: float
+    replay_messages: dict[int, int]  # samples per message -> messages per topic
+    replay_repeats: int
+    solve_windows: tuple[int, ...]
+    solve_repeats: int
+    slow_solve_repeats: int  # PLLS and diagnose
+    peer_frols: tuple[tuple[int, int, int], ...]  # (degree, lags, terms) of the FROLS runs
+    memory_windows: tuple[int, ...]
+
+
+QUICK = Plan(
+    name="quick", repeats=3, ingest_samples=200_000, ingest_taus=(50, 200), ingest_windows=(10_000,),
+    ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
+    node_rates={1: (2000.0, 5000.0, 10000.0), 100: (500.0, 2000.0, 5000.0)}, node_seconds=2.0,
+    replay_messages={1: 20_000, 100: 2_000}, replay_repeats=3, solve_windows=(4000,), solve_repeats=60,
+    slow_solve_repeats=5,
+    peer_frols=((3, 3, 15),), memory_windows=(10_000, 100_000),
+)
+FULL = Plan(
+    name="full", repeats=5, ingest_samples=1_000_000, ingest_taus=(50, 200), ingest_windows=(10_000, 100_000),
+    ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
+    node_rates={1: (1000.0, 2000.0, 5000.0, 7000.0, 10000.0, 12000.0, 14000.0, 20000.0),
+                100: (500.0, 1000.0, 2000.0, 5000.0, 6000.0, 7000.0, 8500.0, 10000.0, 14000.0)},
+    node_seconds=3.0, replay_messages={1: 100_000, 100: 10_000}, replay_repeats=3, solve_windows=(1000, 4000, 16000),
+    solve_repeats=200, slow_solve_repeats=15, peer_frols=((3, 3, 15), (3, 4, 20), (3, 5, 30)),
+    memory_windows=(10_000, 100_000, 1_000_000),
+)
+
+
+# ------------------------------------------------------------------------------------ tables
+@dataclass
+class Section:
+    """One table: ``columns`` are (key, header); rows are dicts keyed like the columns."""
+
+    key: str
+    title: str
+    columns: list[tuple[str, str]]
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_json(self) -> dict:
+        return {"key": self.key, "title": self.title, "columns": [k for k, _ in self.columns], "rows": self.rows,
+                "notes": self.notes, "seconds": round(self.seconds, 2)}
+
+    def markdown(self) -> str:
+        lines = [f"### {self.title}", "", "| " + " | ".join(h for _, h in self.columns) + " |",
+                 "|" + "---|" * len(self.columns)]
+        lines += ["| " + " | ".join(_cell(row.get(k)) for k, _ in self.columns) + " |" for row in self.rows]
+        lines += [""] + [f"- {note}" for note in self.notes]
+        return "\n".join(lines).rstrip() + "\n"
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "**no**"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        return f"{value:.3g}" if abs(value) < 1e5 else f"{value:,.0f}"
+    return str(value)
+
+
+def _percentile(values: Sequence[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values, dtype=float), q))
+
+
+def _median(values: Sequence[float]) -> float:
+    return float(np.median(np.asarray(values, dtype=float)))
+
+
+def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    started = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - started, out
+
+
+def machine() -> dict[str, Any]:
+    """nproc, CPU model, RAM, Python / numpy versions and the date of this run."""
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+        mem_kb = next(int(line.split()[1]) for line in Path("/proc/meminfo").read_text().splitlines()
+                      if line.startswith("MemTotal"))
+    except (OSError, StopIteration):
+        mem_kb = 0
+    return {"date": datetime.date.today().isoformat(), "nproc": os.cpu_count(), "cpu": cpu,
+            "ram_gib": round(mem_kb / 2**20, 1), "python": platform.python_version(), "numpy": np.__version__,
+            "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS") or "default",
+            "load_average": [round(x, 2) for x in os.getloadavg()]}
+
+
+# ------------------------------------------------------------------------------------ data
+def hammerstein_record(samples: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Paper 000's G1 after F2 = tanh(8 v) / 8, Gaussian white input of std 1/(2 pi) (noiseless)."""
+    v = gaussian_white_noise(samples, INPUT_STD, seed=seed)
+    return v, simulate_hammerstein(v, F2, G1)
+
+
+def batch_correlations_fft(v: np.ndarray, y: np.ndarray, tau_max: int, forgetting: float = 1.0) -> np.ndarray:
+    """phi_vv, phi_yv, phi_yvv (rows; tau = -tau_max..tau_max) of the whole record in one batch by
+    real FFTs: the estimator of paper 000 eq. 8 / Remark 2 (``correlation.cross_correlation``), or
+    its exponentially weighted form (``correlation.weighted_cross_correlation``) for lambda < 1."""
+    products = v.size - 2 * tau_max
+    size = scipy.fft.next_fast_len(v.size + products - 1, real=True)
+    centre_v, centre_y = v[tau_max : tau_max + products], y[tau_max : tau_max + products]
+    total = float(products)
+    if forgetting < 1.0:
+        weights = forgetting ** np.arange(products - 1, -1, -1)
+        centre_v, centre_y, total = centre_v * weights, centre_y * weights, float(weights.sum())
+    spectrum_v, spectrum_v2 = scipy.fft.rfft(v, size), scipy.fft.rfft(v * v, size)
+    conj_v, conj_y = np.conj(scipy.fft.rfft(centre_v, size)), np.conj(scipy.fft.rfft(centre_y, size))
+    lagged = [scipy.fft.irfft(a * b, size)[: 2 * tau_max + 1] for a, b in
+              ((spectrum_v, conj_v), (spectrum_v, conj_y), (spectrum_v2, conj_y))]
+    return np.vstack(lagged)[:, ::-1] / total
+
+
+def feed_engine(config: EngineConfig, v: np.ndarray, y: np.ndarray, chunk: int) -> StreamingEngine:
+    """A fresh engine fed (v, y) on the grid k / SAMPLE_RATE, ``chunk`` samples per call."""
+    engine = StreamingEngine(config)
+    t = np.arange(v.size) / SAMPLE_RATE
+    for start in range(0, v.size, chunk):
+        s = slice(start, start + chunk)
+        engine.add_excitation(t[s], v[s])
+        engine.add_response(t[s], y[s])
+    return engine
+
+
+def engine_correlations(engine: StreamingEngine) -> np.ndarray:
+    snap = engine.snapshot()
+    return np.vstack([snap.phi_vv, snap.phi_yv, snap.phi_yvv])
+
+
+# ------------------------------------------------------------------------------------ 1 ingest
+def ingest_section(samples: int, taus: Sequence[int], windows: Sequence[int], forgetting: Sequence[float],
+                   chunk: int, repeats: int) -> Section:
+    """Engine ingest rate vs the batch FFT correlations of the same record (paired repeats)."""
+    section = Section("ingest", f"1. Engine ingest ({samples:,} samples, {chunk} per call)", [
+        ("case", "tau_max, W, mode"), ("engine", "engine samples/s"), ("us_per_sample", "engine us/sample"),
+        ("reference", "batch FFT samples/s"), ("ratio", "engine / FFT"), ("check", "max abs error vs FFT"),
+        ("goal", "goal >= 0.5")])
+    v, y = hammerstein_record(samples, seed=1)
+    for tau_max in taus:
+        for window in windows:
+            for lam in forgetting:
+                config = EngineConfig(sample_rate=SAMPLE_RATE, window=window, tau_max=tau_max, forgetting=lam,
+                                      min_fill=1.0)
+                engine_s, fft_s, ratios = [], [], []
+                for _ in range(repeats):
+                    te, engine = _timed(lambda config=config: feed_engine(config, v, y, chunk))
+                    tf, _ = _timed(lambda tau_max=tau_max, lam=lam: batch_correlations_fft(v, y, tau_max, lam))
+                    engine_s.append(te)
+                    fft_s.append(tf)
+                    ratios.append(tf / te)
+                # the engine's sums at the end = the batch correlations of its window (sliding) or of
+                # the whole record (forgetting: every centre since the start, weighted)
+                tail = slice(-window, None) if lam == 1.0 else slice(None)
+                error = float(np.max(np.abs(engine_correlations(engine)
+                                            - batch_correlations_fft(v[tail], y[tail], tau_max, lam))))
+                ratio = _median(ratios)
+                mode = "sliding" if lam == 1.0 else f"forgetting {lam}"
+                section.rows.append({
+                    "case": f"{tau_max}, {window:,}, {mode}", "tau_max": tau_max, "window": window,
+                    "forgetting": lam, "engine": samples / _median(engine_s),
+                    "us_per_sample": 1e6 * _median(engine_s) / samples, "reference": samples / _median(fft_s),
+                    "ratio": ratio, "check": error, "goal": ratio >= 0.5})
+    section.notes += _growth_notes(section.rows)
+    return section
+
+
+def _growth_notes(rows: list[dict]) -> list[str]:
+    """How the engine's cost per sample grows with tau_max and with W."""
+    notes = []
+    cost = {(r["tau_max"], r["window"], r["forgetting"]): r["us_per_sample"] for r in rows}
+    taus = sorted({k[0] for k in cost})
+    windows = sorted({k[1] for k in cost})
+    for lam in sorted({k[2] for k in cost}, reverse=True):
+        mode = "sliding" if lam == 1.0 else f"forgetting {lam}"
+        if len(taus) > 1:
+            growth = [cost[(taus[-1], w, lam)] / cost[(taus[0], w, lam)] for w in windows]
+            notes.append(f"{mode}: cost per sample x{_median(growth):.2f} from tau_max {taus[0]} to {taus[-1]} "
+                         f"(lag count x{(2 * taus[-1] + 1) / (2 * taus[0] + 1):.2f}); FFT ~flat in tau_max")
+        if len(windows) > 1:
+            growth = [cost[(t, windows[-1], lam)] / cost[(t, windows[0], lam)] for t in taus]
+            notes.append(f"{mode}: cost per sample x{_median(growth):.2f} from W {windows[0]:,} to {windows[-1]:,}")
+    return notes
+
+
+# ------------------------------------------------------------------------------------ 2 node
+def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
+    """Highest zero-loss message rate of the node vs a bare rclpy subscriber (``ros_rate_probe``),
+    climbing each ladder until both have lost samples (or the publisher cannot keep the rate)."""
+    section = Section("node", f"2. Live node: highest rate with zero lost samples ({seconds:g} s per rate)", [
+        ("case", "message"), ("node", "node: max msg/s (samples/s)"), ("reference", "bare rclpy: max msg/s"),
+        ("ratio", "node / bare"), ("tried", "msg/s per topic: samples lost by node / bare"),
+        ("goal", "goal >= 0.9")])
+    try:
+        from .ros_rate_probe import probe
+    except ImportError as exc:  # rclpy missing: an apt ROS install not sourced, or no [ros] extra
+        section.notes.append(f"skipped: {exc}")
+        return section
+    for batch, ladder in rates.items():
+        best = {"node": 0.0, "bare": 0.0}
+        failed: set[str] = set()
+        tried = []
+        for rate in ladder:
+            with contextlib.redirect_stdout(sys.stderr):  # the probe logs its rows on stdout
+                results = probe([rate], batch=batch, seconds=seconds)
+            lost = {}
+            for row in results:
+                who = "node" if row["subscriber"] == "hammer_ros node" else "bare"
+                achieved = row["messages"] / max(row["publish_seconds"], 1e-9)
+                lost[who] = row["lost"] if achieved >= 0.95 * rate else f"publisher {achieved:.0f}/s"
+                if lost[who] == 0 and who not in failed:
+                    best[who] = rate
+                else:
+                    failed.add(who)
+            tried.append(f"{rate:g}: {lost.get('node', '?')} / {lost.get('bare', '?')}")
+            if failed >= {"node", "bare"}:
+                break
+        node, bare = best["node"], best["bare"]
+        ratio = node / bare if bare else None
+        label = "Float64 (1 sample)" if batch == 1 else f"Float64MultiArray ({batch} samples)"
+        section.rows.append({"case": label, "batch": batch, "node": f"{node:g} ({node * batch:g})",
+                             "node_rate": node, "reference": f"{bare:g}", "reference_rate": bare,
+                             "ratio": ratio, "tried": "; ".join(tried), "ladder_top": "bare" not in failed,
+                             "goal": None if ratio is None else ratio >= 0.9})
+    section.notes.append("`ros_rate_probe`: one publisher process sends both topics (reliable, depth 1000) for the "
+                         "stated time, to the bare subscriber (EventsExecutor + spin_once, counting) and to a fresh "
+                         "`hammer-ros node` (window 4000, cls-markov, 4 solves/s; its /diagnostics counters); a rate "
+                         "counts when the publisher kept >= 95 % of it and every sample arrived. When the bare "
+                         "subscriber never lost, its figure is the top of the ladder (a lower bound)")
+    return section
+
+
+# ------------------------------------------------------------------------------------ 3 replay
+def write_bench_bag(path: Path, messages: int, batch: int, seed: int = 3) -> int:
+    """A bag of paper 000's G1 / F2 at SAMPLE_RATE: /cmd and /response, ``messages`` messages each,
+    std_msgs/msg/Float64 (batch 1) or Float64MultiArray of ``batch`` samples (log time = time of
+    the last sample). Returns the number of samples per topic."""
+    from ..io.bags import ResultWriter
+
+    samples = messages * batch
+    v, y = hammerstein_record(samples, seed)
+    start_ns = 1_700_000_000_000_000_000
+    type_name = "std_msgs/msg/Float64" if batch == 1 else "std_msgs/msg/Float64MultiArray"
+    with ResultWriter(path) as writer:
+        for i in range(messages):
+            last = (i + 1) * batch - 1
+            stamp = start_ns + round(last * 1e9 / SAMPLE_RATE)
+            for topic, x in (("/cmd", v), ("/response", y)):
+                values = x[last + 1 - batch : last + 1]
+                message = {"data": float(values[0])} if batch == 1 else {"data": values.tolist()}
+                writer.write(topic, type_name, message, stamp)
+    return samples
+
+
+def bare_decode(path: Path, batch: int) -> int:
+    """The reference: read the bag with mcap + mcap_ros2 (CDR decode) and pull the field out of
+    every message of both topics into one float array per topic. Returns samples per topic."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    values: dict[str, list] = {"/cmd": [], "/response": []}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, _, msg in reader.iter_decoded_messages(topics=list(values)):
+            if batch == 1:
+                values[channel.topic].append(msg.data)
+            else:
+                values[channel.topic].extend(msg.data)
+    arrays = [np.asarray(x, dtype=float) for x in values.values()]
+    return int(min(a.size for a in arrays))
+
+
+def run_replay(path: Path, batch: int, window: int, solve_rate: float | None = None) -> tuple[float, dict]:
+    """(wall seconds, JSON document) of ``hammer-ros replay BAG --json`` run in this process
+    (the whole command: bag checks, reading, engine, solves; its output discarded)."""
+    from ..cli import build_parser
+    from ..cli.replay import run as replay
+
+    field_path = "data" if batch == 1 else "data[:]"
+    argv = ["replay", str(path), "--input", f"/cmd:{field_path}", "--output", f"/response:{field_path}",
+            "--sample-rate", f"{SAMPLE_RATE:g}", "--window", str(window), "--json"]
+    if solve_rate is not None:
+        argv += ["--solve-rate", f"{solve_rate:g}"]
+    args = build_parser().parse_args(argv)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        elapsed, _ = _timed(lambda: replay(args))
+    return elapsed, json.loads(out.getvalue())
+
+
+REPLAY_MODES = (("2 solves / bag s", None), ("final solve only", 1e-6))
+
+
+def replay_section(messages: dict[int, int], repeats: int) -> Section:
+    section = Section("replay", "3. Replay vs bare MCAP read + CDR decode (same bag, same field, same process)", [
+        ("case", "bag"), ("mode", "replay solves"), ("replay", "replay samples/s"),
+        ("reference", "bare decode samples/s"), ("ratio", "replay / bare"), ("goal", "goal >= 0.8")])
+    with tempfile.TemporaryDirectory(prefix="hammer_ros_bench_") as tmp:
+        for batch, count in messages.items():
+            path = Path(tmp) / f"bench_{batch}.mcap"
+            samples = write_bench_bag(path, count, batch)
+            kind = "Float64" if batch == 1 else f"Float64MultiArray x{batch}"
+            size = path.stat().st_size / 2**20
+            for mode, solve_rate in REPLAY_MODES:
+                replay_rates, bare_rates, ratios = [], [], []
+                for _ in range(repeats):
+                    elapsed, doc = run_replay(path, batch, min(4000, samples // 2), solve_rate)
+                    tb, decoded = _timed(lambda path=path, batch=batch: bare_decode(path, batch))
+                    replay_rates.append(doc["samples"] / elapsed)
+                    bare_rates.append(decoded / tb)
+                    ratios.append(replay_rates[-1] / bare_rates[-1])
+                ratio = _median(ratios)
+                section.rows.append({
+                    "case": f"{kind}, 2 x {count:,} messages, {samples:,} samples/topic, {size:.1f} MiB",
+                    "batch": batch, "mode": f"{mode} ({doc['solves']})", "replay": _median(replay_rates),
+                    "reference": _median(bare_rates), "ratio": ratio, "goal": ratio >= 0.8})
+    section.notes.append("replay: `hammer-ros replay BAG --input /cmd:F --output /response:F --sample-rate 1000 "
+                         "--window 4000 --json` (default cls-markov), timed around the whole command in this "
+                         "process; samples = aligned grid samples. bare: mcap reader + mcap_ros2 DecoderFactory, "
+                         "the field of every message of both topics into a numpy array. Replay and bare alternate; "
+                         "ratio = median of the pairs")
+    return section
+
+
+def _child_env() -> dict[str, str]:
+    """This environment without the ROS wheels' re-exec variables (a child re-bootstraps)."""
+    return {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
+
+
+# ------------------------------------------------------------------------------------ 4 solve
+@dataclass(frozen=True)
+class SolveCase:
+    method: str
+    tau_max: int | None = None  # None: the method's default (CLS), unused otherwise
+    mu: int | None = None
+
+    def config(self, window: int) -> EngineConfig:
+        tau_max = self.tau_max or 60
+        return EngineConfig(sample_rate=SAMPLE_RATE, window=window, tau_max=tau_max, method=self.method,
+                            mu=self.mu, min_fill=0.25)
+
+    @property
+    def label(self) -> str:
+        parts = [self.method]
+        if self.mu is not None:
+            parts.append(f"mu {self.mu}")
+        if self.method.startswith("cls"):
+            parts.append(f"tau_max {self.tau_max}")
+        return ", ".join(parts)
+
+
+def solve_cases() -> list[SolveCase]:
+    arx = default_tau_max(3, 1)
+    cases = [SolveCase("cls-arx", arx), SolveCase("cls-arx", 50)]
+    for mu in (10, DEFAULT_MU, 60):
+        cases.append(SolveCase("cls-markov", default_tau_max(3, mu), mu))
+    cases.append(SolveCase("cls-markov", 200, DEFAULT_MU))
+    cases += [SolveCase("plls-hammerstein"), SolveCase("plls-feedback"), SolveCase("plls-hammerstein-feedback")]
+    return cases
+
+
+def solve_latencies(case: SolveCase, window: int, repeats: int) -> dict[str, Any]:
+    """p50 / p99 of ``solve_snapshot`` on a full window of G1 / F2 data, and the batch
+    ``identify`` reference on the same raw window."""
+    v, y = hammerstein_record(window, seed=4)
+    engine = feed_engine(case.config(window), v, y, chunk=1000)
+    snap = engine.snapshot()
+    first = solve_snapshot(snap)
+    if not first.ok:
+        return {"error": first.reason}
+    times = [first.solve_seconds] + [solve_snapshot(snap).solve_seconds for _ in range(repeats - 1)]
+    options = IdentifyOptions(order=3, delay=1, mu=case.mu, tau_max=case.tau_max if case.method.startswith("cls")
+                              else None)
+
+    def batch() -> None:
+        result = identify(case.method, snap.v, snap.y, options)
+        result.to_json(snap.v, snap.y)
+
+    reference = [_timed(batch)[0] for _ in range(max(3, repeats // 4))]
+    return {"p50": 1e3 * _percentile(times, 50), "p99": 1e3 * _percentile(times, 99),
+            "reference": 1e3 * _median(reference), "n": repeats}
+
+
+def diagnose_latencies(window: int, repeats: int) -> dict[str, Any]:
+    """Latency of ``diagnose`` (baseline fit, residual tests, extended model) on ``window``
+    samples (70 / 30 split), or the reason it could not run."""
+    try:
+        from ..diagnosis.diagnose import diagnose_record
+    except ImportError as exc:
+        return {"error": f"diagnose not available ({exc})"}
+    v, y = hammerstein_record(window, seed=4)
+    times = []
+    for _ in range(repeats):
+        elapsed, _ = _timed(lambda: diagnose_record(v, y, order=3))
+        times.append(elapsed)
+    return {"p50": 1e3 * _percentile(times, 50), "p99": 1e3 * _percentile(times, 99), "n": repeats}
+
+
+def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Section:
+    section = Section("solve", "4. Solve latency on an engine snapshot (order 3, delay 1, G1 / tanh data)", [
+        ("case", "method"), ("window", "W"), ("p50", "p50 ms"), ("p99", "p99 ms"), ("n", "solves"),
+        ("reference", "batch identify p50 ms"), ("ratio", "batch / solve p50"), ("goal", "goal")])
+    for window in windows:
+        for case in solve_cases():
+            slow = not case.method.startswith("cls")
+            row = {"case": case.label, "method": case.method, "tau_max": case.tau_max, "mu": case.mu,
+                   "window": window, **solve_latencies(case, window, slow_repeats if slow else repeats)}
+            if "reference" in row:
+                row["ratio"] = row["reference"] / row["p50"]
+            if case.method == "cls-markov" and case.mu == DEFAULT_MU and "p99" in row:
+                row["goal"] = f"p99 < 5 ms: {'yes' if row['p99'] < 5.0 else 'NO'}"
+            section.rows.append(row)
+        row = {"case": "diagnose (70/30 split)", "method": "diagnose", "window": window,
+               **diagnose_latencies(window, max(3, slow_repeats // 3))}
+        section.rows.append(row)
+    for row in section.rows:
+        if "error" in row:
+            row["goal"] = f"failed: {row['error']}"
+    section.notes.append("solve = `streaming.solve_snapshot` (what the node's worker thread runs: CLS step 1 on the "
+                         "window's correlation sums, step 2 and the JSON document with fit/rms on the raw window); "
+                         "batch = `methods.identify` + `to_json` on the same raw window (correlations from scratch)")
+    return section
+
+
+# ------------------------------------------------------------------------------------ 5 peers
+@dataclass(frozen=True)
+class PeerCase:
+    """An estimation and a validation record and the model settings used on them."""
+
+    name: str
+    v_est: np.ndarray
+    y_est: np.ndarray
+    v_val: np.ndarray
+    y_val: np.ndarray
+    order: int
+    description: str
+    offset: tuple[float, float] = (0.0, 0.0)  # (v, y) subtracted before hammer_ros identifies
+
+
+def g1_case() -> PeerCase:
+    """Paper 000 Table 2's setting: G1, F2 = tanh(8 v)/8, Gaussian input std 1/(2 pi), 5001
+    noiseless samples; validation on a fresh 5001-sample record (another seed)."""
+    v_est, y_est = hammerstein_record(5001, seed=11)
+    v_val, y_val = hammerstein_record(5001, seed=12)
+    return PeerCase("G1, tanh(8v)/8", v_est, y_est, v_val, y_val, order=3,
+                    description="paper 000 G1 + F2, Gaussian std 1/(2 pi), 5001 est + 5001 val samples, noiseless")
+
+
+def cascaded_tanks_case() -> PeerCase:
+    """The cascaded-tanks benchmark (hammer_ros/data/cascaded_tanks): estimation record uEst/yEst,
+    validation uVal/yVal, 1024 samples each, Ts = 4 s. hammer_ros's models start from rest, so
+    they run on the data minus the estimation means (both records, same offset)."""
+    with open(DATA_DIR / "cascaded_tanks" / "dataBenchmark.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    col = {k: np.array([float(r[k]) for r in rows]) for k in ("uEst", "yEst", "uVal", "yVal")}
+    return PeerCase("cascaded tanks (real)", col["uEst"], col["yEst"], col["uVal"], col["yVal"], order=2,
+                    description="Schoukens et al. 2016, 1024 est + 1024 val samples, Ts 4 s",
+                    offset=(float(col["uEst"].mean()), float(col["yEst"].mean())))
+
+
+PEER_METHODS = ("cls-markov", "cls-arx", "nls-arx", "plls-hammerstein", "bf-hammerstein")
+VALIDATION_SKIP = 5  # samples at the start of the validation record left out of every NRMSE (FROLS's seed)
+
+
+def nrmse(y: np.ndarray, y_sim: np.ndarray, skip: int = VALIDATION_SKIP) -> float:
+    """||y - y_sim|| / ||y - mean(y)|| over samples ``skip``.. (1 - fit_percent / 100); inf for a
+    diverged simulation."""
+    y, y_sim = np.asarray(y, float)[skip:], np.asarray(y_sim, float)[skip:]
+    with np.errstate(all="ignore"):
+        error = float(np.linalg.norm(y - y_sim) / np.linalg.norm(y - np.mean(y)))
+    return error if math.isfinite(error) else float("inf")
+
+
+def _divergence_note(error: float) -> str | None:
+    return "free run diverges (unstable or wrong-sign model)" if error > 10 else None
+
+
+def hammer_ros_peer_rows(case: PeerCase, repeats: int) -> list[dict]:
+    rows = []
+    dv, dy = case.offset
+    options = IdentifyOptions(order=case.order, delay=1, poly=3)
+    for method in PEER_METHODS:
+        times, result = [], None
+        try:
+            for _ in range(repeats):
+                elapsed, result = _timed(lambda method=method: identify(method, case.v_est - dv, case.y_est - dy,
+                                                                        options))
+                times.append(elapsed)
+            with np.errstate(all="ignore"):
+                error = nrmse(case.y_val, result.simulate(case.v_val - dv) + dy)
+        except Exception as exc:  # a failing method is a row of the table, not a crash
+            rows.append({"case": case.name, "tool": "hammer_ros", "method": method, "note": f"failed: {exc}"})
+            continue
+        settings = f"order {case.order}, delay 1" + (", poly 3" if method.split("-")[0] in ("cls", "nls") else "")
+        if method == "cls-markov":
+            settings += f", mu {DEFAULT_MU}, tau_max {default_tau_max(case.order, DEFAULT_MU)}"
+        rows.append({"case": case.name, "tool": "hammer_ros", "method": method, "settings": settings,
+                     "seconds": _median(times), "nrmse": error, "note": _divergence_note(error)})
+    return rows
+
+
+def sysidentpy_available() -> bool:
+    return importlib.util.find_spec("sysidentpy") is not None
+
+
+def frols_peer_row(case: PeerCase, degree: int, lags: int, terms: int) -> dict:
+    """SysIdentPy FROLS (polynomial basis of ``degree``, ylag = xlag = ``lags``, AIC order
+    selection among up to ``terms`` terms, least squares); free run (``predict`` with
+    steps_ahead=None) on the validation input from its first ``lags`` measured outputs."""
+    from sysidentpy.basis_function import Polynomial
+    from sysidentpy.model_structure_selection import FROLS
+    from sysidentpy.parameter_estimation import LeastSquares
+
+    model = FROLS(order_selection=True, n_info_values=terms, ylag=lags, xlag=lags, info_criteria="aic",
+                  estimator=LeastSquares(), basis_function=Polynomial(degree=degree), model_type="NARMAX")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        elapsed, _ = _timed(lambda: model.fit(X=case.v_est.reshape(-1, 1), y=case.y_est.reshape(-1, 1)))
+        with np.errstate(all="ignore"):
+            y_sim = model.predict(X=case.v_val.reshape(-1, 1), y=case.y_val[:lags].reshape(-1, 1)).ravel()
+    return {"case": case.name, "tool": f"SysIdentPy {SYSIDENTPY_VERSION}", "method": "FROLS",
+            "settings": f"Polynomial degree {degree}, ylag = xlag = {lags}, AIC over <= {terms} terms, "
+                        f"LeastSquares ({len(model.final_model)} terms chosen)",
+            "seconds": elapsed, "nrmse": nrmse(case.y_val, y_sim, max(lags, VALIDATION_SKIP))}
+
+
+def peer_section(frols: Sequence[tuple[int, int, int]], repeats: int) -> Section:
+    section = Section("peers", "5. Peers: identification time and free-run validation NRMSE", [
+        ("case", "data"), ("tool", "tool"), ("method", "method"), ("settings", "settings"),
+        ("seconds", "identify s"), ("nrmse", "val NRMSE"), ("speedup", "FROLS time / this"),
+        ("better", "NRMSE below best FROLS"), ("note", "note")])
+    have_peer = sysidentpy_available()
+    if not have_peer:
+        section.notes.append("SysIdentPy rows skipped: sysidentpy is not installed (run `make bench-deps`, which "
+                             f"installs sysidentpy=={SYSIDENTPY_VERSION} from requirements/bench.txt)")
+    for case in (g1_case(), cascaded_tanks_case()):
+        ours = hammer_ros_peer_rows(case, repeats)
+        peers = [frols_peer_row(case, *config) for config in frols] if have_peer else []
+        if peers:
+            fastest = min(p["seconds"] for p in peers)
+            best = min(p["nrmse"] for p in peers)
+            for row in ours:
+                if "seconds" in row:
+                    row["speedup"] = fastest / row["seconds"]
+                    row["better"] = row["nrmse"] < best
+        section.rows += ours + peers
+    section.notes.append(f"NRMSE = ||y_val - y_sim|| / ||y_val - mean(y_val)|| of the free-run simulation on the "
+                         f"validation record from sample {VALIDATION_SKIP} on (hammer_ros models start from rest; "
+                         f"FROLS is seeded with the first `lags` measured outputs); hammer_ros times are medians of "
+                         f"repeated runs, FROLS one fit each")
+    section.notes.append("speedup: the fastest FROLS fit on the same data over this method's time")
+    return section
+
+
+# ------------------------------------------------------------------------------------ 6 memory
+def memory_child(window: int, method: str = "cls-markov") -> dict:
+    """In a fresh process: resident memory after the imports, the peak while the engine ingests
+    2 W samples (generated chunk by chunk), and the peak over one solve of the full window."""
+    plant = HammersteinStream(F2, G1)
+    chunk = 10_000
+    config = EngineConfig(sample_rate=SAMPLE_RATE, window=window, tau_max=default_tau_max(3, DEFAULT_MU),
+                          method=method)
+    engine = StreamingEngine(config)
+    rng = np.random.default_rng(5)
+    baseline = process_status_kib("VmRSS")
+    for start in range(0, 2 * window, chunk):
+        v = INPUT_STD * rng.standard_normal(chunk)
+        t = (start + np.arange(chunk)) / SAMPLE_RATE
+        engine.add_excitation(t, v)
+        engine.add_response(t, plant(v))
+    ingest_peak = process_status_kib("VmHWM")
+    outcome = engine.solve()
+    return {"window": window, "baseline_kib": baseline, "ingest_peak_kib": ingest_peak,
+            "solve_peak_kib": process_status_kib("VmHWM"), "solve_ok": outcome.ok,
+            "solve_seconds": outcome.solve_seconds,
+            "reason": outcome.reason}
+
+
+def memory_section(windows: Sequence[int], node: bool = True) -> Section:
+    """Per W: the engine alone in a fresh process (``memory_child``) and, with ``node``, a fresh
+    ``hammer-ros node`` fed over DDS (``ros_rate_probe.node_memory``)."""
+    section = Section("memory", "6. Peak memory of the engine and of the node (fresh processes; cls-markov, "
+                      "mu 30, tau_max 66)", [
+        ("case", "W"), ("ingest", "engine ingest peak MiB"), ("solve", "engine solve peak MiB"),
+        ("reference", "raw window (v, y float64) MiB"), ("ratio", "engine ingest / raw window"),
+        ("solve_seconds", "engine solve s"), ("node_idle", "node idle RSS MiB"), ("node_peak", "node peak RSS MiB"),
+        ("node_added", "node peak - idle MiB")])
+    node_memory = None
+    if node:
+        try:
+            from .ros_rate_probe import node_memory
+        except ImportError as exc:  # rclpy missing
+            section.notes.append(f"node rows skipped: {exc}")
+    for window in windows:
+        code = ("import json; from hammer_ros.tools.bench import memory_child; "
+                f"print(json.dumps(memory_child({window})))")
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=900,
+                              env=_child_env())
+        if done.returncode != 0:
+            section.rows.append({"case": f"{window:,}", "ingest": f"failed: {done.stderr.strip()[-200:]}"})
+            continue
+        doc = json.loads(done.stdout.strip().splitlines()[-1])
+        raw = 2 * 8 * window / 2**20
+        ingest = (doc["ingest_peak_kib"] - doc["baseline_kib"]) / 1024
+        solve = (doc["solve_peak_kib"] - doc["baseline_kib"]) / 1024
+        row = {"case": f"{window:,}", "window": window, "ingest": ingest, "solve": solve,
+               "reference": raw, "ratio": ingest / raw, "baseline_mib": doc["baseline_kib"] / 1024,
+               "solve_seconds": doc["solve_seconds"] if doc["solve_ok"] else f"not ok: {doc['reason']}"}
+        if node_memory is not None:
+            try:
+                with contextlib.redirect_stdout(sys.stderr):
+                    live = node_memory(window)
+            except (RuntimeError, OSError, subprocess.SubprocessError) as exc:
+                row["node_idle"] = f"failed: {exc}"
+            else:
+                row.update(node_idle=live["idle_kib"] / 1024, node_peak=live["peak_kib"] / 1024,
+                           node_added=(live["peak_kib"] - live["idle_kib"]) / 1024,
+                           node_complete=live["filled"] and live["solved"])
+                if not row["node_complete"]:
+                    row["node_added"] = f"{row['node_added']:.3g} (window not filled and solved)"
+        section.rows.append(row)
+    section.notes.append("engine: MiB above the process's resident size after the imports (VmHWM - VmRSS), while "
+                         "it ingests 2 W samples and over one solve of the full window")
+    if node_memory is not None:
+        section.notes.append("node: VmRSS of a fresh `hammer-ros node` (window W, cls-markov, 1 solve/s, a diagnosis "
+                             "every 2 s of its newest `diagnosis_window` = 10,000 samples) after startup, and its "
+                             "VmHWM once 1.2 W samples of G1 / tanh data (Float64MultiArray of 1000 samples, 200 "
+                             "messages/s per topic) filled the window and it solved twice and diagnosed once more")
+    return section
+
+
+# ------------------------------------------------------------------------------------ goals
+def _measured(sections: dict[str, Section], key: str) -> list[dict]:
+    """The rows of a section that hold a measurement (not a failure)."""
+    section = sections.get(key)
+    return [] if section is None else [r for r in section.rows if "error" not in r]
+
+
+def _all_some_none(flags: Sequence[bool]) -> bool | str:
+    return True if all(flags) else ("partly" if any(flags) else False)
+
+
+def goals(sections: dict[str, Section]) -> Section:
+    """The issue's goals, each with the figures that decide it ("partly": met in some cases)."""
+    table = Section("goals", "Goals", [("goal", "goal"), ("measured", "measured"), ("met", "met")])
+
+    def add(goal: str, measured: str, met: bool | str | None) -> None:
+        table.rows.append({"goal": goal, "measured": measured, "met": met})
+
+    rows = _measured(sections, "ingest")
+    if rows:
+        add("engine ingest >= 0.5 x batch FFT", "; ".join(f"{r['case']}: {r['ratio']:.2f}" for r in rows),
+            _all_some_none([r["goal"] for r in rows]))
+    rows = [r for r in _measured(sections, "node") if r.get("ratio") is not None]
+    if rows:
+        add("node zero loss up to >= 0.9 x bare rclpy", "; ".join(f"{r['case']}: {r['ratio']:.2f}" for r in rows),
+            _all_some_none([r["goal"] for r in rows]))
+    rows = _measured(sections, "replay")
+    if rows:
+        add("replay >= 0.8 x bare decode",
+            "; ".join(f"{r['case'].split(',')[0]}, {r['mode'].split(' (')[0]}: {r['ratio']:.2f}" for r in rows),
+            _all_some_none([r["goal"] for r in rows]))
+    rows = [r for r in _measured(sections, "solve")
+            if r.get("method") == "cls-markov" and r.get("mu") == DEFAULT_MU and "p99" in r]
+    if rows:
+        add("CLS mu-Markov solve p99 < 5 ms at mu = 30",
+            "; ".join(f"W {r['window']}, tau_max {r['tau_max']}: {r['p99']:.2f} ms" for r in rows),
+            _all_some_none([r["p99"] < 5.0 for r in rows]))
+    peers = _measured(sections, "peers")
+    rows = [r for r in peers if r.get("method") == "cls-markov" and "speedup" in r and r["case"].startswith("G1")]
+    if rows:
+        r = rows[0]
+        best = min(p["nrmse"] for p in peers if p["method"] == "FROLS" and p["case"] == r["case"])
+        add(">= 20 x faster than FROLS with a better validation NRMSE (G1, CLS mu-Markov)",
+            f"{r['speedup']:.0f} x faster, NRMSE {r['nrmse']:.3f} vs best FROLS {best:.3f}",
+            r["speedup"] >= 20 and r["better"])
+    elif peers:
+        add(">= 20 x faster than FROLS with a better validation NRMSE (G1, CLS mu-Markov)",
+            "not measured: SysIdentPy is not installed (make bench-deps)", None)
+    for key, section in sections.items():
+        if not _measured(sections, key) and section.rows:
+            add(f"section {key}", f"not measured: {section.rows[0].get('error')}", False)
+    return table
+
+
+# ------------------------------------------------------------------------------------ driver
+SECTION_KEYS = ("ingest", "node", "replay", "solve", "peers", "memory")
+
+
+def run_sections(plan: Plan, only: Sequence[str] = SECTION_KEYS, profile: bool = False,
+                 log=sys.stderr) -> dict[str, Section]:
+    """Run the sections named in ``only`` (in their order); with ``profile`` print each one's
+    cProfile (top functions by own time) on ``log``: the evidence behind a missed goal."""
+    builders: dict[str, Callable[[], Section]] = {
+        "ingest": lambda: ingest_section(plan.ingest_samples, plan.ingest_taus, plan.ingest_windows,
+                                         plan.ingest_forgetting, plan.ingest_chunk, plan.repeats),
+        "node": lambda: node_section(plan.node_rates, plan.node_seconds),
+        "replay": lambda: replay_section(plan.replay_messages, plan.replay_repeats),
+        "solve": lambda: solve_section(plan.solve_windows, plan.solve_repeats, plan.slow_solve_repeats),
+        "peers": lambda: peer_section(plan.peer_frols, plan.repeats),
+        "memory": lambda: memory_section(plan.memory_windows),
+    }
+    sections = {}
+    for key in only:
+        print(f"bench: {key} ...", file=log, flush=True)
+        profiler = cProfile.Profile() if profile else None
+        try:
+            if profiler:
+                profiler.enable()
+            elapsed, section = _timed(builders[key])
+        except Exception as exc:  # one broken section must not hide the others
+            print(f"bench: {key} failed: {exc!r}", file=log, flush=True)
+            section, elapsed = Section(key, f"{key}: failed", [("error", "error")], [{"error": repr(exc)}]), 0.0
+        finally:
+            if profiler:
+                profiler.disable()
+        section.seconds = elapsed
+        sections[key] = section
+        print(f"bench: {key} done in {elapsed:.1f} s", file=log, flush=True)
+        if profiler:
+            pstats.Stats(profiler, stream=log).sort_stats("tottime").print_stats(15)
+    return sections
+
+
+def markdown(info: dict, sections: dict[str, Section], goal_table: Section, plan: Plan, wall: float) -> str:
+    head = (f"hammer-ros bench ({plan.name}), {info['date']}: {info['nproc']} cores, {info['cpu']}, "
+            f"{info['ram_gib']} GiB RAM, Python {info['python']}, numpy {info['numpy']} (BLAS threads "
+            f"{info['blas_threads']}), load average at start "
+            f"{', '.join(map(str, info['load_average']))}; {wall:.0f} s\n")
+    return "\n".join([head, goal_table.markdown(), *(s.markdown() for s in sections.values())])
+
+
+def run(args: argparse.Namespace) -> int:
+    plan = QUICK if args.quick else FULL
+    only = tuple(getattr(args, "only", None) or SECTION_KEYS)
+    unknown = [key for key in only if key not in SECTION_KEYS]
+    if unknown:
+        raise UsageError(f"--only: unknown section {unknown[0]!r} (choose from {', '.join(SECTION_KEYS)})")
+    info = machine()
+    started = time.perf_counter()
+    sections = run_sections(plan, only, profile=getattr(args, "profile", False))
+    goal_table = goals(sections)
+    wall = time.perf_counter() - started
+    if args.json:
+        doc = {"plan": plan.name, "machine": info, "wall_s": round(wall, 1), "goals": goal_table.rows,
+               "sections": [s.to_json() for s in sections.values()]}
+        json.dump(_json_safe(doc), sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+    else:
+        sys.stdout.write(markdown(info, sections, goal_table, plan, wall))
+    return 0
+
+
+def _json_safe(value: Any) -> Any:
+    """numpy scalars as Python numbers, non-finite floats as strings ("inf", "nan")."""
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value

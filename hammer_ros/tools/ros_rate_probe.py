@@ -1,0 +1,277 @@
+"""How many messages per second reach a subscriber without loss: the hammer_ros node vs a bare
+rclpy subscriber (EventsExecutor in a spin_once loop), on a private ROS_DOMAIN_ID on loopback.
+
+    python -m hammer_ros.tools.ros_rate_probe [--rates 1000,5000,10000] [--batch 1] [--seconds 4]
+
+For each rate R a publisher process sends R messages/s on each of /command and /response
+(std_msgs/Float64, or Float64MultiArray of ``--batch`` samples; reliable, depth 1000) for
+``--seconds`` seconds, once to a bare subscriber (this process, with the node's QoS: best
+effort, depth 1000) and once to a fresh
+``hammer-ros node`` (whose /diagnostics counters are read back). A rate is sustained when every
+published sample was received. Output: one JSON document per line on stdout. Reusable by
+``hammer-ros bench`` through :func:`probe`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from ..ros.environment import DomainLease, child_environment, prepare_ros_environment
+
+TOPICS = ("/command", "/response")
+MATCH_TIMEOUT = 15.0
+SETTLE_SECONDS = 1.0
+
+
+PLANT_MESSAGES = 64  # distinct (u, y) message pairs cycled by a --plant publisher
+
+
+def _plant_messages(batch: int) -> list[tuple]:
+    """(u, y) Float64MultiArray pairs of paper 000's G1 with tanh(8v)/8, one continuous record."""
+    from std_msgs.msg import Float64MultiArray
+
+    from ..identification.simulate import HammersteinStream
+    from .reproduce.cls import G1, INPUT_STD, NONLINEARITIES
+
+    plant = HammersteinStream(NONLINEARITIES["F2"][1], G1)
+    rng = np.random.default_rng(5)
+    pairs = []
+    for _ in range(PLANT_MESSAGES):
+        v = INPUT_STD * rng.standard_normal(batch)
+        pairs.append(tuple(Float64MultiArray(data=x.tolist()) for x in (v, plant(v))))
+    return pairs
+
+
+def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
+    """Publisher process: wait for a subscriber on both topics, publish, print the count sent.
+    The same message every time, or (``plant``) a Hammerstein record cycled."""
+    import rclpy
+    from std_msgs.msg import Float64, Float64MultiArray
+
+    rclpy.init()
+    node = rclpy.create_node("rate_probe_publisher")
+    msg_type = Float64 if batch == 1 else Float64MultiArray
+    pubs = [node.create_publisher(msg_type, topic, 1000) for topic in TOPICS]
+    deadline = time.monotonic() + MATCH_TIMEOUT
+    while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.5)  # let the subscriber finish matching both topics
+    values = [float(i % 97) / 97.0 for i in range(batch)]
+    message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
+    pairs = _plant_messages(batch) if plant else [(message, message)]
+    total = int(rate * seconds)
+    start = time.monotonic()
+    sent = 0
+    while sent < total:
+        due = min(total, int((time.monotonic() - start) * rate) + 1)
+        while sent < due:
+            for pub, msg in zip(pubs, pairs[sent % len(pairs)]):
+                pub.publish(msg)
+            sent += 1
+        time.sleep(max(0.0, start + sent / rate - time.monotonic()))
+    elapsed = time.monotonic() - start
+    print(json.dumps({"messages": sent, "publish_seconds": elapsed}), flush=True)
+    time.sleep(0.5)
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def _start_publisher(env: dict, rate: float, seconds: float, batch: int, plant: bool = False) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "hammer_ros.tools.ros_rate_probe", "--publish", "--rates", str(rate),
+           "--seconds", str(seconds), "--batch", str(batch), *(["--plant"] if plant else [])]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+
+
+def _finish(publisher: subprocess.Popen) -> dict:
+    out, _ = publisher.communicate(timeout=120)
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) -> dict:
+    """Count messages in this process (EventsExecutor + spin_once)."""
+    from std_msgs.msg import Float64, Float64MultiArray
+
+    counts = {topic: 0 for topic in TOPICS}
+    msg_type = Float64 if batch == 1 else Float64MultiArray
+    from rclpy.qos import QoSProfile, qos_profile_sensor_data
+
+    qos = QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
+                     durability=qos_profile_sensor_data.durability)  # what the node subscribes with
+    subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), qos)
+            for topic in TOPICS]
+    publisher = _start_publisher(env, rate, seconds, batch)
+    while publisher.poll() is None:
+        executor.spin_once(timeout_sec=0.05)
+    settle = time.monotonic() + SETTLE_SECONDS
+    while time.monotonic() < settle:
+        executor.spin_once(timeout_sec=0.05)
+    for sub in subs:
+        node.destroy_subscription(sub)
+    sent = _finish(publisher)
+    return {"subscriber": "bare rclpy (EventsExecutor spin_once)", "received": min(counts.values()) * batch, **sent}
+
+
+def _diagnostics_counters(node):
+    """Subscribe to /diagnostics: the hammer_ros status's key/value pairs, updated in place."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    latest: dict[str, str] = {}
+
+    def on_diagnostics(msg) -> None:
+        for status in msg.status:
+            if status.name.startswith("hammer_ros"):
+                latest.update({kv.key: kv.value for kv in status.values})
+
+    return latest, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+
+
+def _start_node(env: dict, params: list[str], batch: int) -> subprocess.Popen:
+    """A fresh ``hammer-ros node`` on TOPICS (Float64 or Float64MultiArray ``data[:]``)."""
+    field = "data" if batch == 1 else "data[:]"
+    type_name = "std_msgs/msg/Float64" if batch == 1 else "std_msgs/msg/Float64MultiArray"
+    for stream, topic in zip(("excitation", "response"), TOPICS):
+        params = [*params, f"{stream}_topic:={topic}", f"{stream}_type:={type_name}", f"{stream}_field:={field}"]
+    cmd = [sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _spin_until(executor, done, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while not done() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    return done()
+
+
+def _node(node, executor, env: dict, rate: float, seconds: float, batch: int) -> dict:
+    """Run a fresh hammer_ros node and read its received-sample counters from /diagnostics."""
+    latest, sub = _diagnostics_counters(node)
+    ident = _start_node(env, [f"sample_rate:={rate * batch}", "solve_rate:=4.0", "window:=4000"], batch)
+    try:
+        _spin_until(executor, lambda: bool(latest), MATCH_TIMEOUT)  # up once it publishes diagnostics
+        publisher = _start_publisher(env, rate, seconds, batch)
+        _spin_until(executor, lambda: publisher.poll() is not None, 120)
+        sent = _finish(publisher)
+        expected = sent["messages"] * batch
+        _spin_until(executor, lambda: min(int(latest.get(k, 0)) for k in (
+            "received_excitation", "received_response")) >= expected, SETTLE_SECONDS + 1.0)
+    finally:
+        ident.terminate()
+        ident.communicate(timeout=10)
+        node.destroy_subscription(sub)
+    received = min(int(latest.get(k, 0)) for k in ("received_excitation", "received_response"))
+    return {"subscriber": "hammer_ros node", "received": received, "aligned": int(latest.get("aligned", 0)), **sent}
+
+
+def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
+    """Resident memory of a fresh ``hammer-ros node`` (window W, cls-markov, 1 solve/s, a
+    diagnosis every 2 s) idle after startup, and its peak (VmHWM) once a Hammerstein record
+    (``batch`` samples per message, ``rate`` messages/s per topic) has filled the window and
+    the node has solved on it at least twice and diagnosed its newest ``diagnosis_window``."""
+    prepare_ros_environment()
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id)
+        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTRTPS_DEFAULT_PROFILES_FILE")})
+        import rclpy
+        from rclpy.experimental import EventsExecutor
+        from rclpy.signals import SignalHandlerOptions
+        from std_msgs.msg import String
+
+        from ..ros.node import PARAMETERS
+        from .process_status import process_status_kib
+
+        context = rclpy.Context()  # its own context and no signal handlers: callable from any process
+        rclpy.init(context=context, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node("memory_probe", context=context)
+        executor = EventsExecutor(context=context)
+        executor.add_node(node)
+        latest, _ = _diagnostics_counters(node)
+        diagnoses: list[int] = []
+        node.create_subscription(String, "/hammer_ros/diagnosis",
+                                 lambda m: diagnoses.append(json.loads(m.data).get("samples", 0)), 10)
+        params = [f"sample_rate:={rate * batch}", f"window:={window}", "solve_rate:=1.0", "diagnosis_period:=2.0",
+                  "max_gap:=1.0"]
+        ident = _start_node(env, params, batch)
+        try:
+            if not _spin_until(executor, lambda: bool(latest), MATCH_TIMEOUT):
+                raise RuntimeError("the node published no diagnostics")
+            idle = process_status_kib("VmRSS", ident.pid)
+            seconds = 1.2 * window / (rate * batch) + 1.0
+            publisher = _start_publisher(env, rate, seconds, batch, plant=True)
+            full = lambda: int(latest.get("window_samples", 0)) >= window  # noqa: E731
+            _spin_until(executor, lambda: full() or publisher.poll() is not None, seconds + MATCH_TIMEOUT)
+            def attempts() -> int:
+                return int(latest.get("solves", 0)) + int(latest.get("solve_errors", 0))
+
+            diagnosed = min(window, PARAMETERS["diagnosis_window"].default)
+            solves = attempts()
+            done = _spin_until(executor, lambda: attempts() >= solves + 2 and max(diagnoses, default=0) >= diagnosed,
+                               120)
+            peak = process_status_kib("VmHWM", ident.pid)
+            _finish(publisher)
+        finally:
+            ident.terminate()
+            ident.communicate(timeout=30)
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+    return {"window": window, "idle_kib": idle, "peak_kib": peak, "filled": full(), "solved": done,
+            "window_samples": int(latest.get("window_samples", 0)),
+            "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
+
+
+def probe(rates: list[float], batch: int = 1, seconds: float = 4.0) -> list[dict]:
+    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate."""
+    prepare_ros_environment()
+    rows = []
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id)
+        os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+                                               "FASTRTPS_DEFAULT_PROFILES_FILE")})
+        import rclpy
+        from rclpy.experimental import EventsExecutor
+
+        rclpy.init()
+        node = rclpy.create_node("rate_probe")
+        executor = EventsExecutor()
+        executor.add_node(node)
+        try:
+            for rate in rates:
+                for measure in (_bare, _node):
+                    row = measure(node, executor, env, rate, seconds, batch)
+                    row.update(rate_msgs_per_s=rate, batch=batch, samples_per_s=rate * batch,
+                               lost=row["messages"] * batch - row["received"])
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown()
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hammer_ros.tools.ros_rate_probe",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--rates", default="1000,2000,5000,10000", help="messages/s per topic, comma-separated")
+    parser.add_argument("--batch", type=int, default=1, help="samples per message (1 = Float64)")
+    parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--plant", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    rates = [float(r) for r in args.rates.split(",")]
+    if args.publish:
+        prepare_ros_environment()
+        return _publish(rates[0], args.seconds, args.batch, args.plant)
+    probe(rates, args.batch, args.seconds)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
