@@ -42,6 +42,7 @@ setup(
         "matplotlib>=3.7",
         "mcap>=1.1",
         "mcap-ros2-support>=0.5",
+        "numba>=0.60",  # compiled sample-by-sample simulators (a pure-numpy fallback exists)
     ],
     extras_require={
         "ros": ROS_JAZZY_WHEELS,

@@ -168,3 +168,13 @@ def test_rate_publishes_models_on_the_live_graph(ros_env):
         if listener.poll() is None:
             listener.terminate()
             listener.wait(timeout=10)
+
+
+def test_replay_refine_refines_every_solve_and_fits_at_least_as_well(capsys):
+    args = ("replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "0.2", "--json")
+    plain = run_json(capsys, *args)
+    refined = run_json(capsys, *args, "--refine")
+    assert "refined" in refined and "refined" not in plain
+    assert refined["refined"]["cost"] <= refined["refined"]["cost_start"]
+    assert refined["rms"] <= plain["rms"] * 1.02
+    assert refined["samples"] == plain["samples"]

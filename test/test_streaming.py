@@ -136,6 +136,25 @@ def test_streaming_solve_equals_batch_identify_on_the_same_window(record, g1, me
         assert root_rss_error(g1.poles, outcome.result.poles) < 0.1  # and it is the right plant
 
 
+def test_refine_solves_equal_batch_identify_refine_on_the_same_window(record, g1):
+    """The node's ``refine`` parameter: each solve is ``identify --refine`` of the window."""
+    from hammer_ros.identification.refinement import refine_result
+
+    t, v, y = record
+    config = EngineConfig(sample_rate=100.0, window=4000, tau_max=60, method="nls-arx", refine=True)
+    engine = StreamingEngine(config)
+    feed_randomly(engine, t, v, y, seed=5)
+    outcome = engine.solve()
+    assert outcome.ok, outcome.reason
+    batch = identify("nls-arx", v[-4000:], y[-4000:], config.identify_options())
+    refined = refine_result(batch, v[-4000:], y[-4000:])
+    assert root_rss_error(refined.poles, outcome.result.poles) < 1e-9
+    assert outcome.doc["refined"]["cost"] <= outcome.doc["refined"]["cost_start"]
+    assert root_rss_error(g1.poles, outcome.result.poles) < 0.05
+    with pytest.raises(UsageError, match="refine"):
+        EngineConfig(refine="yes").validated()
+
+
 def test_forgetting_solve_equals_cls_on_weighted_correlations(record):
     t, v, y = record
     config = EngineConfig(sample_rate=100.0, window=3000, tau_max=60, forgetting=0.9995, method="cls-markov")

@@ -27,7 +27,7 @@ from .common import (
     positive_int,
 )
 
-REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric")
+REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
 # `all`: the papers' numerical examples; `real` (the measured records, minutes of diagnosis) runs on its own
 REPRODUCE_ALL = ("cls", "plls", "bf", "semiparametric")
 
@@ -42,6 +42,10 @@ def cmd_identify(args: argparse.Namespace) -> int:
         result = identify(args.method, record.v, record.y, options)
     except IdentificationError as exc:  # name the data the method could not identify from
         raise IdentificationError(f"{args.data}: {exc}") from None
+    if args.refine:
+        from ..identification.refinement import refine_result
+
+        result = refine_result(result, record.v, record.y)
     doc = result.to_json(record.v, record.y)
     emit(doc, args.json, format_model(doc))
     return 0
@@ -76,6 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA", help="CSV, NPZ, .mcap or rosbag2 directory")
     add_data_options(p)
     add_identify_options(p)
+    p.add_argument("--refine", action="store_true",
+                   help="refine the method's estimate on the simulation error (all its parts)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=cmd_identify)
 
@@ -101,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, help="play at this multiple of real time on the ROS graph")
     p.add_argument("--forgetting", type=float, default=None, help="exponential forgetting factor (default 1: window)")
     p.add_argument("--interpolation", choices=("zoh", "linear"), default=None, help="alignment (default zoh)")
+    p.add_argument("--refine", action="store_true", help="refine every solve on the simulation error (as identify)")
     p.add_argument("--json", action="store_true")
     # None = take it from --config (then the engine default): the identify options' defaults
     p.set_defaults(func=_delegate("hammer_ros.cli.replay"), method=None, order=None, delay=None, poly=None)

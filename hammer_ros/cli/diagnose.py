@@ -62,6 +62,9 @@ def summary(d: Diagnosis) -> str:
         e = d.extended
         lines.append(f"extended  {EXTENSION[d.cause]}")
         lines.append(f"          validation rms {e.rms:.4g}, fit {e.fit_percent:.1f} %, gain (rms ratio) {d.gain:.3f}")
+        if len(d.steps) > 1:
+            lines.append("chain     " + " -> ".join(f"{s.cause} (x{s.gain:.3f})" for s in d.steps))
+        lines.append(f"          the chain stopped: {d.chain_stopped}")
     others = [f"{c} {g:.3f}" for c, g in d.candidates if c != d.cause]
     if others:
         lines.append(f"also fitted (gain): {', '.join(others)}")

@@ -57,6 +57,8 @@ def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tupl
            "partition": args.partition, "tau_max": args.tau_max, "window": args.window,
            "sample_rate": args.sample_rate, "forgetting": args.forgetting, "interpolation": args.interpolation}
     changes = {k: v for k, v in cli.items() if v is not None}
+    if args.refine:
+        changes["refine"] = True
     method = changes.get("method", config.method)
     check_option_conflicts(method, args, streaming=True)
     if "tau_max" not in changes and "tau_max" not in params and method in CLS_STRUCTURES:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 CAUSES = ("none", "output_feedback", "parallel_path", "output_nonlinearity", "backlash", "time_varying",
-          "unmodeled_dynamics", "periodic_disturbance")
+          "unmodeled_dynamics", "periodic_disturbance", "input_dynamics")
 
 MEANING = {
     "none": "nothing a Hammerstein model cannot represent: the baseline is adequate",
@@ -14,6 +14,8 @@ MEANING = {
     "time_varying": "the linear block or the gain changes during the record (drift or step change)",
     "unmodeled_dynamics": "the linear block has more dynamics than the nominal order",
     "periodic_disturbance": "an additive periodic signal not caused by the input",
+    "input_dynamics": "a linear block before the static map (Wiener-Hammerstein, L-N-L: a filter, a sensor or an "
+                      "amplifier stage ahead of the nonlinearity)",
 }
 
 EXTENSION = {
@@ -24,4 +26,5 @@ EXTENSION = {
     "time_varying": "sliding-window re-identification of the linear block",
     "unmodeled_dynamics": "Hammerstein model of higher order, chosen on the estimation data (BIC)",
     "periodic_disturbance": "Hammerstein model plus sinusoids at the residual-spectrum lines",
+    "input_dynamics": "Wiener-Hammerstein y = G2[f(G1[u])] from the split of the best linear approximation",
 }

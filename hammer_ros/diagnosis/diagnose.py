@@ -13,6 +13,14 @@
 4. The cause is the candidate with the largest validation gain (baseline RMS / extended
    RMS), if that gain is at least ``MIN_GAIN``; otherwise ``none``. A cause is thus named
    only when its evidence supports it and its extension improves the validation fit.
+   When no signature is significant, or no supported extension gains enough, but the residual
+   tests say the baseline is inadequate (a poor baseline blurs every signature, e.g. an output
+   map that is not invertible), every other extension with a start of its own is fitted, and
+   one is named only at a gain of at least ``BLIND_MIN_GAIN`` (``found_by`` says which way the
+   cause was found).
+5. Compound explanations (``chain``): the extended model's own residual is tested again and
+   extended while a step gains at least 5 % on the validation data; ``steps`` lists the chain,
+   ``extended`` and ``gain`` describe its last model.
 """
 
 from __future__ import annotations
@@ -22,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..identification.result import fit_percent, rms_error, strict_json
+from .chain import Chain, Step, extend_chain
 from .evidence import (
     CauseTest,
     LineTest,
@@ -37,7 +46,11 @@ from .residual_tests import CorrelationTest, Evidence, residual_tests
 from .split import Split, split_record
 
 MIN_GAIN = 1.05
-MAX_CANDIDATES = 4
+BLIND_MIN_GAIN = 1.15  # without a significant signature, a cause must gain this much
+# extensions that are simulation models of the input alone (not time_varying: it re-fits on the measured
+# validation output, so any model error looks like a gain; not periodic_disturbance: it needs spectral lines)
+BLIND_CAUSES = ("output_feedback", "output_nonlinearity", "input_dynamics", "parallel_path", "unmodeled_dynamics")
+MAX_CANDIDATES = 5  # of the 8 causes with a signature test
 RELATIVE_SHARE = 0.2
 
 
@@ -65,6 +78,8 @@ class Diagnosis:
     candidates: tuple[tuple[str, float], ...] = ()
     details: dict = field(default_factory=dict)
     baseline_model: dict = field(default_factory=dict)
+    steps: tuple[Step, ...] = ()
+    chain_stopped: str | None = None
 
     def to_json(self) -> dict:
         doc = {
@@ -75,6 +90,8 @@ class Diagnosis:
             "extended": None if self.extended is None else {**self.extended.to_json(), **self.details},
             "gain": None if self.gain is None else {"rms_ratio": float(self.gain)},
             "candidates": [{"cause": c, "rms_ratio": float(g)} for c, g in self.candidates],
+            "steps": [s.to_json() for s in self.steps],
+            "chain_stopped": self.chain_stopped,
         }
         return strict_json(doc)
 
@@ -92,10 +109,12 @@ class DiagnosisRun:
     lines: LineTest
     windows: WindowTest
     extensions: dict  # cause -> ExtendedModel (every one fitted)
+    chain: Chain | None = None  # the compound explanation that starts at the named cause
 
     @property
     def extended(self) -> ExtendedModel | None:
-        return self.extensions.get(self.diagnosis.cause)
+        """The final model of the chain (the first cause's extension when the chain has one step)."""
+        return None if self.chain is None else self.chain.final
 
 
 def _score(structure: str, y: np.ndarray, y_sim: np.ndarray) -> ModelScore:
@@ -130,35 +149,52 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     baseline_score = _score("hammerstein", split.y_val, x_val)
     extensions: dict[str, ExtendedModel] = {}
     gains: dict[str, float] = {}
-    for test in supported:
-        extended = EXTENSIONS[test.cause](ctx)
-        if extended is None or not np.all(np.isfinite(extended.validation_output)):
-            continue
-        extensions[test.cause] = extended
-        gains[test.cause] = baseline_score.rms / max(rms_error(split.y_val, extended.validation_output), 1e-300)
 
+    def fit(candidates: list[str]) -> None:
+        for candidate in candidates:
+            extended = EXTENSIONS[candidate](ctx)
+            if extended is None or not np.all(np.isfinite(extended.validation_output)):
+                continue
+            extensions[candidate] = extended
+            gains[candidate] = baseline_score.rms / max(rms_error(split.y_val, extended.validation_output), 1e-300)
+
+    fit([t.cause for t in supported])
+    found_by = "signature"
     cause = max(gains, key=gains.get) if gains else "none"
     if cause != "none" and gains[cause] < MIN_GAIN:
         cause = "none"
+    if cause == "none" and not all(t.evidence().passed for t in correlation):
+        signed = dict(gains)
+        fit([c for c in BLIND_CAUSES if c in EXTENSIONS and c not in signed])
+        blind = {c: g for c, g in gains.items() if c not in signed and g >= BLIND_MIN_GAIN}
+        if blind:
+            cause = max(blind, key=blind.get)
+            found_by = "a search of every extension (no significant signature led to a gain; the residual tests failed)"
     evidence = tuple(t.evidence() for t in correlation) + tuple(t.evidence for t in cause_tests)
     confidence = _confidence(cause, gains, evidence)
-    extended_score = None if cause == "none" else _score(extensions[cause].structure, split.y_val,
-                                                         extensions[cause].validation_output)
+    chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
+    final = None if chain is None else chain.final
+    extended_score = None if final is None else _score(final.structure, split.y_val, final.validation_output)
+    details = {} if chain is None else {**extensions[cause].details, "found_by": found_by}
+    if chain is not None and len(chain.models) > 1:
+        details["further_steps"] = [{"cause": m.cause, **m.details} for m in chain.models[1:]]
     diagnosis = Diagnosis(
         baseline=baseline_score,
         cause=cause,
         confidence=confidence,
         evidence=evidence,
         extended=extended_score,
-        gain=None if cause == "none" else gains[cause],
+        gain=None if extended_score is None else baseline_score.rms / max(extended_score.rms, 1e-300),
         candidates=tuple(sorted(gains.items(), key=lambda kv: -kv[1])),
-        details={} if cause == "none" else extensions[cause].details,
+        details=details,
         baseline_model={"order": base.order, "delay": base.delay, "dead_time": dead_time,
                         "poles": [[float(p.real), float(p.imag)] for p in base.linear.poles],
                         "nonlinearity": base.nonlinearity.to_json((float(np.min(split.v_est)),
                                                                     float(np.max(split.v_est))))},
+        steps=() if chain is None else chain.steps,
+        chain_stopped=None if chain is None else chain.stopped,
     )
-    return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions)
+    return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions, chain)
 
 
 def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, ...]) -> float:

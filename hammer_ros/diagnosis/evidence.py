@@ -10,6 +10,7 @@ Each cause leaves its own first-order signature in the baseline's simulation err
 | parallel_path | linear dynamics of v itself: lags 0..11 and first-order filters of v |
 | unmodeled_dynamics | linear dynamics of F(v): lags 0..11 and first-order filters of F(v) |
 | backlash | G[F'(v) s], s = sign of the last input change (play shifts v by -w/2 s) |
+| input_dynamics | G[F'(v) (L_p - 1) v], beyond G[hinges of v] (a filter L ahead: F(Lv) ~ F(v) + F'(v)(L - 1)v) |
 | parallel_path (i.i.d. input) | first- and second-order input-output cross-correlations of unlike shape |
 | periodic_disturbance | sinusoids at lines of the spectrum of e that v and x do not have |
 | time_varying | a gain / lag / residual level that changes from window to window |
@@ -41,6 +42,9 @@ PREWHITEN_ORDER = 10
 DYNAMIC_POLES = (0.5, 0.8, 0.9, 0.95, 0.98)
 FIR_LAGS = 12
 MAX_LINES = 6
+FRONT_POLES = (0.5, 0.8, 0.95)  # low-pass filters L_p of the input for the input-dynamics signature
+FRONT_STEPS = 5
+INPUT_MAP_HINGES = 8
 
 
 @dataclass(frozen=True)
@@ -138,7 +142,26 @@ def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np
     for cause, (name, columns) in signatures.items():
         f_value, critical, explained = partial_f_test(e, nuisance, columns, skip)
         tests.append(CauseTest(Evidence(f"{name} (F)", f_value, critical, f_value <= critical, cause), explained))
+    # input dynamics y = G2[f(L v)]: f(L v) = f(v + (L - 1) v) ~ f(v) + f'(v) (L - 1) v, so the residual
+    # carries G[f'(v) (L_p - 1) v] (slope of the baseline map, and steps at quantiles of v for a map
+    # the baseline got wrong) beyond G[static map of v]. The explained share is that of all the static
+    # maps of (filtered) inputs: these columns, and the hinges of x (x = G[F(v)] is one filtered input;
+    # when G2 is nearly static, y ~ f(L v) is mostly a static map of some filter of the input)
+    raw_map = through_g(hinges(v, INPUT_MAP_HINGES))
+    knots = np.quantile(v, np.arange(1, FRONT_STEPS + 1) / (FRONT_STEPS + 1))
+    weights = np.column_stack([slope, (v[:, None] > knots[None, :]).astype(float)])
+    high = [_low_pass(v, p) - v for p in FRONT_POLES]
+    front = through_g(np.column_stack([weights * h[:, None] for h in high]))
+    f_value, critical, _ = partial_f_test(e, np.column_stack([nuisance, raw_map]), front, skip)
+    explained = partial_f_test(e, nuisance, np.column_stack([raw_map, front, hinges(x)]), skip)[2]
+    tests.append(CauseTest(Evidence("residual vs G[F'(input) x high-passed input] beyond G[map of input] (F)",
+                                    f_value, critical, f_value <= critical, "input_dynamics"), explained))
     return tests
+
+
+def _low_pass(v: np.ndarray, pole: float) -> np.ndarray:
+    """(1 - p) / (1 - p q^-1) v from the steady state at v(0)."""
+    return signal.lfilter([1.0 - pole], [1.0, -pole], v, zi=[pole * v[0]])[0]
 
 
 def correlation_shape_test(v: np.ndarray, y: np.ndarray, max_lag: int = 20) -> CauseTest | None:

@@ -200,6 +200,30 @@ def _effect(cause: str, rng, linear: LinearModel, fmap: Map, v: np.ndarray, band
     raise ValueError(f"unknown cause {cause!r}")
 
 
+def _input_dynamics(rng, linear: LinearModel, fmap: Map, v: np.ndarray, bandwidth: float, order: int):
+    """(output, its Hammerstein counterpart, nominal order, description) of a Wiener-Hammerstein
+    plant y = G[F(L[v])]: a filter L ahead of the map (its output scaled to the input's spread).
+    The counterpart c + g G[L[F(v)]] has the same blocks commuted: what differs from it is the effect."""
+    front, label = _front_block(rng, bandwidth)
+    w = front.simulate(v)
+    scale = np.std(v) / np.std(w)
+    y = linear.simulate(fmap(np.mean(v) + (w - np.mean(w)) * scale))
+    commuted = np.column_stack([np.ones(v.size), linear.simulate(front.simulate(fmap(v)))])
+    commuted = commuted @ np.linalg.lstsq(commuted[PREROLL:], y[PREROLL:], rcond=None)[0]  # its best gain and offset
+    return y, commuted, order + front.order, f"front {label} (nominal order {order + front.order})"
+
+
+def _front_block(rng, bandwidth: float) -> tuple[LinearModel, str]:
+    """A unit-DC-gain filter ahead of the input map, its corner inside the input's band: a
+    first-order low-pass, or a lightly damped pair (a sensor or amplifier resonance)."""
+    if rng.random() < 0.6:
+        pole = rng.uniform(max(0.5, 1.0 - 0.5 * bandwidth), 0.92)
+        return LinearModel([1.0 - pole], [1.0, -pole]), f"low-pass pole {pole:.2f}"
+    radius, angle = rng.uniform(0.6, 0.9), rng.uniform(0.2, min(1.2, 0.8 * bandwidth))
+    den = np.real(np.poly([radius * np.exp(1j * angle), radius * np.exp(-1j * angle)]))
+    return LinearModel([np.sum(den)], den), f"pair r={radius:.2f} angle={angle:.2f}"
+
+
 def _output_feedback(rng, linear: LinearModel, fmap: Map, v: np.ndarray, x: np.ndarray):
     """y = G[F(v) - h(y)] with a random non-linear h (its linear part only moves the poles)."""
     _, m, s = _normalised(x)
@@ -316,15 +340,19 @@ def generate_case(cause: str, seed: int, n: int = 4000) -> GeneratedCase:
     order = int(rng.integers(2, 4))
     linear = random_linear_block(rng, order)
     v, input_kind, bandwidth = random_input(rng, n + PREROLL)
-    names = STRONG_NONLINEARITIES if cause == "parallel_path" else NONLINEARITIES
+    names = STRONG_NONLINEARITIES if cause in ("parallel_path", "input_dynamics") else NONLINEARITIES
     shape, shape_label = random_nonlinearity(rng, names)
     centre, scale = float(np.mean(v)), float(np.std(v))
 
     def fmap(x):
         return scale * shape((np.asarray(x) - centre) / scale)
 
-    clean, nominal, effect = _effect(cause, rng, linear, fmap, v, bandwidth, order)
-    effect_size = float(np.sqrt(np.mean((clean - linear.simulate(fmap(v)))[PREROLL:] ** 2)))
+    if cause == "input_dynamics":
+        clean, reference, nominal, effect = _input_dynamics(rng, linear, fmap, v, bandwidth, order)
+    else:
+        clean, nominal, effect = _effect(cause, rng, linear, fmap, v, bandwidth, order)
+        reference = linear.simulate(fmap(v))
+    effect_size = float(np.sqrt(np.mean((clean - reference)[PREROLL:] ** 2)))
     clean = clean[PREROLL:] + rng.uniform(-1.0, 1.0) * np.std(clean)
     level = rng.uniform(0.01, 0.05)
     noise_std = level * float(np.std(clean))

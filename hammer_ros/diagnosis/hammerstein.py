@@ -30,8 +30,8 @@ from ..identification.piecewise_linear_ls import (
 )
 from ..identification.regression import build_regression, lagged_columns, solve_least_squares
 from ..identification.result import rms_error
+from ..identification.simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
-from .simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
 from .split import held_back
 
 MAX_ORDER_SEARCH = 4

@@ -46,7 +46,7 @@ def render_report(run: DiagnosisRun, title: str = "hammer-ros diagnosis") -> str
              f"<style>{CSS}</style></head><body>", f"<h1>{html.escape(title)}</h1>", _verdict(run),
              "<h2>Validation: measured vs simulated</h2>",
              "<p class='small'>Free-run simulations on the validation data (the models never saw it). "
-             "Bottom: the simulation errors.</p>", _img(_validation_figure(run)), _numbers(run),
+             "Bottom: the simulation errors.</p>", _img(_validation_figure(run)), _numbers(run), _chain(run),
              "<h2>What the baseline gets wrong: the cause tests</h2>",
              "<p class='small'>Each cause leaves its own signature in the baseline's error; a test fails when "
              "the signature is significant (99 % level). Failing tests nominate causes; the extension of each "
@@ -74,7 +74,25 @@ def _verdict(run: DiagnosisRun) -> str:
             f"Extended model: {html.escape(EXTENSION[d.cause])}.<br>"
             f"Validation RMS {d.baseline.rms:.4g} &rarr; {d.extended.rms:.4g} (gain {d.gain:.2f}), fit "
             f"{d.baseline.fit_percent:.1f} % &rarr; {d.extended.fit_percent:.1f} %.")
+    if len(d.steps) > 1:
+        chain = " &rarr; ".join(f"{html.escape(s.cause)} (x{s.gain:.2f})" for s in d.steps)
+        text += f"<br>Compound explanation: {chain}."
     return f"<div class='verdict'>{text}</div>"
+
+
+def _chain(run: DiagnosisRun) -> str:
+    """The chain of explanations: each step extends the model of the step before."""
+    d = run.diagnosis
+    if not d.steps:
+        return ""
+    body = "".join(f"<tr><td class='num'>{i}</td><td>{html.escape(s.cause)}</td><td>{html.escape(s.structure)}</td>"
+                   f"<td class='num'>{s.rms:.4g}</td><td class='num'>{s.gain:.3f}</td></tr>"
+                   for i, s in enumerate(d.steps, 1))
+    return ("<h2>Chain of explanations</h2><p class='small'>After the named cause, the extended model's own "
+            "validation residual is tested again; a further step is taken while it gains at least 5 %.</p>"
+            "<table><tr><th>step</th><th>cause</th><th>structure</th><th>validation RMS</th>"
+            f"<th>gain over the step before</th></tr>{body}</table>"
+            f"<p class='small'>The chain stopped: {html.escape(d.chain_stopped or '')}.</p>")
 
 
 def _numbers(run: DiagnosisRun) -> str:
@@ -112,9 +130,9 @@ def _models(run: DiagnosisRun) -> str:
     base = {k: v for k, v in d.to_json()["baseline"].items() if k != "nonlinearity"}
     out = [f"<p>Baseline (Hammerstein, PLLS + simulation-error refinement): "
            f"<code>{html.escape(json.dumps(_rounded(base)))}</code></p>"]
-    if run.extended is not None:
-        out.append(f"<p>Extended ({html.escape(run.extended.structure)}): "
-                   f"<code>{html.escape(json.dumps(_rounded(run.extended.details)))}</code></p>")
+    for i, model in enumerate(run.chain.models if run.chain is not None else (), 1):
+        out.append(f"<p>Step {i}, {html.escape(model.cause)} ({html.escape(model.structure)}): "
+                   f"<code>{html.escape(json.dumps(_rounded(model.details)))}</code></p>")
     return "".join(out)
 
 
@@ -235,7 +253,7 @@ def _maps_figure(run: DiagnosisRun):
     import matplotlib.pyplot as plt
 
     plots = [("baseline F (input map)", run.split.v_est, run.baseline.static)]
-    extra = run.extended.maps if run.extended is not None else ()
+    extra = tuple(m for model in run.chain.models for m in model.maps) if run.chain is not None else ()
     fig, axes = plt.subplots(1, 1 + len(extra), figsize=(4.2 * (1 + len(extra)), 3.2), squeeze=False)
     title, samples, fn = plots[0]
     grid = np.linspace(float(np.min(samples)), float(np.max(samples)), 300)

@@ -4,7 +4,10 @@ One module per paper method: ``correlation_least_squares`` (paper 000: CLS, Bai'
 ``era`` (the eigensystem realisation behind mu-Markov), ``piecewise_linear_ls`` (paper 001: PLLS),
 ``semiparametric`` (paper 002), ``billings_fakhouri`` (paper 003). Shared pieces: ``linear``
 (transfer functions), ``static_maps`` (the nonlinearities), ``regression`` (regressor builders and
-least squares), ``correlation``, ``simulate``, ``excitation`` (test signals), ``result`` (the
+least squares), ``correlation``, ``simulate`` (with ``compiled_loops``: numba kernels of the
+sample-by-sample loops), ``simulation_error`` and ``refinement`` (any estimate refined on the
+simulation error, ``identify --refine``), ``excitation`` (test signals), ``result`` (the
 identified model and its JSON) and ``methods`` (the ``--method`` table and ``identify``).
-May import: numpy, scipy, ``hammer_ros.errors``. Never rclpy, never another layer.
+May import: numpy, scipy, numba (compiled loops, with a pure-numpy fallback), ``hammer_ros.errors``.
+Never rclpy, never another layer.
 """

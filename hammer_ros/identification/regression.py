@@ -99,7 +99,12 @@ def build_regression(
 
 
 def solve_least_squares(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """theta minimising ||target - phi theta||_2 (QR / SVD based, never the normal equations)."""
+    """theta minimising ||target - phi theta||_2 (QR / SVD based, never the normal equations).
+    Non-finite data give NaN coefficients without calling LAPACK (whose DLASCL would print its
+    complaint on stdout, into the one JSON document a command prints)."""
+    phi, target = np.asarray(phi, dtype=float), np.asarray(target, dtype=float)
+    if not (np.all(np.isfinite(phi)) and np.all(np.isfinite(target))):
+        return np.full((phi.shape[1], *target.shape[1:]), np.nan)
     theta, *_ = np.linalg.lstsq(phi, target, rcond=None)
     return theta
 

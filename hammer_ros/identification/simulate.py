@@ -6,16 +6,17 @@ on numpy arrays (the static_maps classes or plain functions such as ``np.tanh``)
 
 from __future__ import annotations
 
-from bisect import bisect_left
 from collections.abc import Callable
 
 import numpy as np
 from scipy import signal
 
+from .compiled_loops import feedback_loop, play
 from .linear import LinearModel
 from .static_maps import PiecewiseLinearMap
 
 StaticMap = Callable[[np.ndarray], np.ndarray]
+COMPILED_PLAY_SAMPLES = 100_000
 
 
 def simulate_hammerstein(v: np.ndarray, nonlinearity: StaticMap, linear: LinearModel) -> np.ndarray:
@@ -47,14 +48,19 @@ def simulate_hammerstein_feedback(
 
         y(k) = [B(q) F(v)](k) - sum_{i>=1} b_i h(y(k-i)) - sum_{j>=1} a_j y(k-j)
 
-    runs sample by sample on Python floats (a PiecewiseLinearMap h is evaluated by bisection;
-    any other h is called on one-element arrays).
+    runs sample by sample: for a PiecewiseLinearMap h in the compiled loop of
+    ``compiled_loops.feedback_loop`` (numba; its pure-Python fallback without numba or with
+    HAMMER_ROS_NO_NUMBA=1), for any other h on Python floats, h called on one-element arrays.
     """
     v = np.asarray(v, dtype=float)
     b, a = linear.b, linear.a
     if b[0] != 0.0:
         raise ValueError("the linear block of a feedback loop must be strictly proper (b_0 = 0)")
-    forced = np.convolve(np.asarray(nonlinearity(v), dtype=float), b)[: v.size].tolist()
+    forced = np.convolve(np.asarray(nonlinearity(v), dtype=float), b)[: v.size]
+    if isinstance(feedback, PiecewiseLinearMap):
+        return feedback_loop(forced, b[1:], a[1:], feedback.breakpoints, feedback.values, feedback.slopes,
+                             feedback.curvature_left, feedback.curvature_right)
+    forced = forced.tolist()
     h = _scalar_function(feedback)
     b_past, a_past = b[1:].tolist(), a[1:].tolist()
     lead = max(len(b_past), len(a_past))
@@ -73,14 +79,6 @@ def simulate_hammerstein_feedback(
 
 def _scalar_function(fn: StaticMap) -> Callable[[float], float]:
     """fn as a float -> float function for sample-by-sample recursions."""
-    if isinstance(fn, PiecewiseLinearMap):
-        knots, values, slopes = fn.breakpoints.tolist(), fn.values.tolist(), fn.slopes.tolist()
-
-        def piecewise_linear(x: float) -> float:
-            i = bisect_left(knots, x)  # knots[i-1] < x <= knots[i]: interval i, slope i
-            return values[0] + slopes[0] * (x - knots[0]) if i == 0 else values[i - 1] + slopes[i] * (x - knots[i - 1])
-
-        return piecewise_linear
     return lambda x: float(np.asarray(fn(np.array([x])), dtype=float).reshape(-1)[0])
 
 
@@ -92,17 +90,12 @@ def play_operator(v: np.ndarray, width: float, initial: float | None = None) -> 
     i.e. the output stays put while the input moves inside the gap and is dragged along,
     ``width/2`` behind, once the input pushes against either side of it.
     """
-    x = np.asarray(v, dtype=float).tolist()
-    half = 0.5 * max(float(width), 0.0)
-    z = float(x[0] if initial is None else initial) if x else 0.0
-    out = []
-    for value in x:
-        if value - half > z:
-            z = value - half
-        elif value + half < z:
-            z = value + half
-        out.append(z)
-    return np.asarray(out)
+    x = np.asarray(v, dtype=float)
+    if x.size == 0:
+        return x.copy()
+    # compiled from COMPILED_PLAY_SAMPLES on: below, the Python loop takes less than importing numba
+    return play(x, 0.5 * max(float(width), 0.0), float(x[0] if initial is None else initial),
+                compiled=None if x.size >= COMPILED_PLAY_SAMPLES else False)
 
 
 def add_noise(x: np.ndarray, noise_to_signal: float, seed=None) -> np.ndarray:

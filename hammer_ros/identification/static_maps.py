@@ -36,12 +36,18 @@ class PolynomialMap:
 @dataclass(frozen=True, eq=False)
 class PiecewiseLinearMap:
     """Continuous piecewise-linear map through the knots (breakpoints[i], values[i]),
-    extended beyond the outer knots with the slopes ``slope_left`` and ``slope_right``."""
+    extended beyond the outer knots with the slopes ``slope_left`` and ``slope_right`` plus, when
+    given, a quadratic tail: f(c_p) + slope_right (v - c_p) + curvature_right (v - c_p)^2 beyond
+    the last knot (and the same on the left), held constant beyond the quadratic's vertex (the
+    tail stays monotone): the three ways a map continues beyond its data (the last slope, a
+    constant = zero outer slope, a low-order polynomial tail; ``with_tails``)."""
 
     breakpoints: np.ndarray
     values: np.ndarray
     slope_left: float
     slope_right: float
+    curvature_left: float = 0.0
+    curvature_right: float = 0.0
 
     def __post_init__(self) -> None:
         c = np.atleast_1d(np.asarray(self.breakpoints, dtype=float))
@@ -55,8 +61,10 @@ class PiecewiseLinearMap:
         v = np.asarray(v, dtype=float)
         c, f = self.breakpoints, self.values
         out = np.interp(v, c, f)
-        out = np.where(v < c[0], f[0] + self.slope_left * (v - c[0]), out)
-        return np.where(v > c[-1], f[-1] + self.slope_right * (v - c[-1]), out)
+        d = _up_to_vertex(np.minimum(v - c[0], 0.0), self.slope_left, self.curvature_left, -1.0)
+        out = np.where(v < c[0], f[0] + self.slope_left * d + self.curvature_left * d * d, out)
+        d = _up_to_vertex(np.maximum(v - c[-1], 0.0), self.slope_right, self.curvature_right, 1.0)
+        return np.where(v > c[-1], f[-1] + self.slope_right * d + self.curvature_right * d * d, out)
 
     @property
     def slopes(self) -> np.ndarray:
@@ -95,3 +103,44 @@ class NonparametricMap:
 
     def to_json(self, sample_range: tuple[float, float] | None = None) -> dict:
         return {"kind": "nonparametric", "points": np.column_stack([self.u, self.f]).tolist()}
+
+
+TAILS = ("slope", "constant", "polynomial")
+
+
+def _up_to_vertex(d: np.ndarray, slope: float, curvature: float, side: float) -> np.ndarray:
+    """The distance d beyond an outer knot (sign ``side``), stopped at the vertex of the tail
+    slope d + curvature d^2 when the vertex lies on that side."""
+    if curvature == 0.0:
+        return d
+    vertex = -slope / (2.0 * curvature)
+    return np.where(side * (d - vertex) > 0.0, vertex, d) if side * vertex >= 0.0 else d
+
+
+def with_tails(fmap: PiecewiseLinearMap, lo: float, hi: float, left: str = "slope",
+               right: str = "slope") -> PiecewiseLinearMap:
+    """``fmap`` on its data range [lo, hi] (extended to the outer knots), continued beyond it as
+    ``left`` / ``right``, each one of TAILS: ``slope``, the outer slope (fmap itself);
+    ``constant``, held at its value at the edge (a saturation); ``polynomial``, a quadratic
+    whose slope keeps changing outwards at the rate between the two outer intervals (the change
+    of slope over the distance between their midpoints). Knots are added at the edges."""
+    for tail in (left, right):
+        if tail not in TAILS:
+            raise ValueError(f"tail must be one of {TAILS} (got {tail!r})")
+    c, s = fmap.breakpoints, fmap.slopes
+    lo, hi = min(float(lo), float(c[0])), max(float(hi), float(c[-1]))
+    knots = np.concatenate([[lo] if lo < c[0] else [], c, [hi] if hi > c[-1] else []])
+    slopes = np.concatenate([[s[0]] if lo < c[0] else [], s, [s[-1]] if hi > c[-1] else []])
+    values = fmap(knots)
+    curvature = [0.0, 0.0]
+    if knots.size >= 3:
+        mid = 0.5 * (knots[1:] + knots[:-1])  # midpoints of the inner intervals
+        curvature = [0.5 * (slopes[2] - slopes[1]) / (mid[1] - mid[0]),
+                     0.5 * (slopes[-2] - slopes[-3]) / (mid[-1] - mid[-2])]
+    if left == "constant":
+        slopes[0] = 0.0
+    if right == "constant":
+        slopes[-1] = 0.0
+    return PiecewiseLinearMap(knots, values, float(slopes[0]), float(slopes[-1]),
+                              curvature[0] if left == "polynomial" else 0.0,
+                              curvature[1] if right == "polynomial" else 0.0)

@@ -80,7 +80,7 @@ _TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
 @dataclass(frozen=True)
 class Spec:
-    """One node parameter: default, kind (str/int/float/floats), bounds and description."""
+    """One node parameter: default, kind (str/int/float/floats/bool), bounds and description."""
 
     default: Any
     kind: str
@@ -116,6 +116,8 @@ PARAMETERS: dict[str, Spec] = {
     "min_excitation": Spec(0.1, "float", "input std needed, relative to the windows behind the published "
                            "models (below: 'not persistently exciting', the last model stays, marked stale); 0 = off",
                            0.0, 1.0),
+    "refine": Spec(False, "bool", "refine each solve's estimate on the simulation error of the window "
+                   "(identify --refine; slower solves, unbiased poles under output noise)"),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
     "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
                              "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
@@ -175,6 +177,10 @@ def _coerce(name: str, value: Any) -> Any:
             raise UsageError(f"{name}: must be a string (got {value!r})")
         if spec.choices and value not in spec.choices:
             raise UsageError(f"{name}: {value!r} is not one of {', '.join(spec.choices)}")
+        return value
+    if spec.kind == "bool":
+        if not isinstance(value, bool):
+            raise UsageError(f"{name}: must be true or false (got {value!r})")
         return value
     if spec.kind == "floats":
         if type(value).__name__ == "array":  # rclpy hands DOUBLE_ARRAY values over as array.array('d')

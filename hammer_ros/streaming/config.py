@@ -28,7 +28,7 @@ CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older tha
 STREAMS = ("excitation", "response")
 _FIELD_KINDS = {"sample_rate": float, "window": int, "forgetting": float, "tau_max": int, "method": str, "order": int,
                 "delay": int, "mu": int, "poly": int, "partition": tuple, "interpolation": str, "max_gap": float,
-                "min_fill": float, "min_excitation": float}
+                "min_fill": float, "min_excitation": float, "refine": bool}
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,7 @@ class EngineConfig:
     max_gap: float = 0.0  # seconds; 0 = 5 / sample_rate
     min_fill: float = 0.25  # fraction of the window needed before the first solve
     min_excitation: float = 0.1  # input std needed, relative to the windows behind the published models; 0 = off
+    refine: bool = False  # refine each solve's estimate on the simulation error (identification.refinement)
 
     def validated(self) -> EngineConfig:
         """self, or a UsageError naming the first invalid field and why."""
@@ -65,6 +66,8 @@ class EngineConfig:
                 raise bad(f.name, "must be a number")
             if kind is str and not isinstance(value, str):
                 raise bad(f.name, "must be a string")
+            if kind is bool and not isinstance(value, (bool, np.bool_)):
+                raise bad(f.name, "must be true or false")
             if kind is tuple and not (isinstance(value, tuple)
                                       and all(isinstance(c, (int, float)) and math.isfinite(c) for c in value)):
                 raise bad(f.name, "must be a list of numbers")

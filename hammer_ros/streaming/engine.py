@@ -268,6 +268,10 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
                                                structure=CLS_STRUCTURES[cfg.method])
             else:
                 result = identify(cfg.method, v, y, cfg.identify_options())
+            if cfg.refine:
+                from ..identification.refinement import refine_result
+
+                result = refine_result(result, v, y)
             doc = result.to_json(v, y)
             kept = _published_fits_better(snapshot.published, v, y, doc.get("fit_percent"))
     except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:

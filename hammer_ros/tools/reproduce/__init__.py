@@ -1,6 +1,7 @@
 """``hammer-ros reproduce``: the papers' numerical examples beside their published numbers.
 
-Each target module (``cls``, ``plls``, ``bf``, ``semiparametric``) exports
+Each target module (``cls``, ``plls``, ``bf``, ``semiparametric``, and ``real``: the measured
+benchmark records in ``hammer_ros/data`` through ``diagnose``) exports
 ``rows(runs: int | None, seed: int) -> list[dict]`` with dicts holding the contract's keys
 ``paper, table, case, quantity, published, ours`` (published may be None where the paper
 gives no number).

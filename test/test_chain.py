@@ -1,0 +1,78 @@
+"""Compound explanations: the diagnosis extends its own extended model while a step gains."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+from hammer_ros.diagnosis.chain import MIN_STEP_GAIN, constant_beyond, follow_output_nonlinearity
+from hammer_ros.diagnosis.diagnose import diagnose
+from hammer_ros.diagnosis.extensions import ExtendedModel
+from hammer_ros.diagnosis.split import split_record
+from hammer_ros.identification.linear import LinearModel
+from hammer_ros.identification.static_maps import PiecewiseLinearMap
+
+
+def _record(seed: int, n: int, saturate: bool, path: bool):
+    rng = np.random.default_rng(seed)
+    v = signal.lfilter([1.0], [1.0, -0.5], rng.standard_normal(n))
+    g = LinearModel.from_zeros_poles([], [0.85, 0.6 + 0.3j, 0.6 - 0.3j], 1.0)
+    x = g.simulate(np.tanh(1.2 * v))
+    y = np.minimum(x, np.quantile(x, 0.8)) if saturate else x
+    if path:  # a second sensor path beside the saturated one
+        y = y + signal.lfilter([0.0, 0.3], [1.0, -0.95], v)
+    return v, y + 0.01 * np.std(y) * rng.standard_normal(n)
+
+
+def test_two_effects_give_a_chain_of_two_steps():
+    """A saturated Hammerstein branch and a linear path beside it: both are named, each step
+    gaining, and the chain's model is better than any single extension."""
+    v, y = _record(4, 4000, saturate=True, path=True)
+    d = diagnose(split_record(v, y, 0.7), order=3).diagnosis
+    doc = d.to_json()
+    causes = [s["cause"] for s in doc["steps"]]
+    assert set(causes[:2]) == {"parallel_path", "output_nonlinearity"}, doc["steps"]
+    assert doc["cause"] == causes[0]
+    assert all(s["gain"] >= MIN_STEP_GAIN for s in doc["steps"])
+    product = np.prod([s["gain"] for s in doc["steps"]])
+    assert np.isclose(doc["gain"]["rms_ratio"], product, rtol=1e-9)
+    assert doc["extended"]["rms"] == doc["steps"][-1]["rms"]
+    best_single = max(c["rms_ratio"] for c in doc["candidates"])  # every single extension's gain
+    assert doc["gain"]["rms_ratio"] > MIN_STEP_GAIN * best_single
+    assert doc["chain_stopped"]
+
+
+def test_one_effect_gives_one_step_and_says_why_it_stopped():
+    v, y = _record(5, 4000, saturate=False, path=True)
+    doc = diagnose(split_record(v, y, 0.7), order=3).diagnosis.to_json()
+    assert doc["cause"] == "parallel_path"
+    assert [s["cause"] for s in doc["steps"]] == ["parallel_path"]
+    assert "signature" in doc["chain_stopped"] or "gains" in doc["chain_stopped"]
+
+
+def test_a_clean_record_has_no_chain():
+    v, y = _record(6, 3000, saturate=False, path=False)
+    doc = diagnose(split_record(v, y, 0.7), order=3).diagnosis.to_json()
+    assert doc["cause"] == "none" and doc["steps"] == [] and doc["chain_stopped"] is None
+
+
+def test_an_output_map_chooses_a_constant_continuation_for_a_saturation():
+    """Estimation data that reach the clip only in the held-back part: the map learns to stay
+    constant beyond its data, where the last slope would run away."""
+    rng = np.random.default_rng(1)
+    v = np.concatenate([rng.uniform(-1.0, 1.0, 3000), rng.uniform(-1.0, 1.6, 1000)])
+    y_true = np.minimum(v, 1.0)
+    split = split_record(np.concatenate([v, rng.uniform(-1, 3, 1000)]),
+                         np.concatenate([y_true, np.minimum(rng.uniform(-1, 3, 1000), 1.0)]), 0.8)
+    identity = ExtendedModel("x", "identity", np.zeros(split.v_val.size), simulate=lambda u: np.asarray(u, float))
+    step = follow_output_nonlinearity(split, identity, 0)
+    assert step.details["output_map"]["continuation"] == "constant"
+    assert np.max(np.abs(step.simulate(np.array([2.0, 3.0])) - 1.0)) < 0.05
+
+
+def test_constant_beyond_keeps_the_map_inside_and_holds_it_outside():
+    m = PiecewiseLinearMap(np.array([0.0, 1.0]), np.array([0.0, 2.0]), 1.0, 3.0)
+    c = constant_beyond(m, -0.5, 1.5)
+    grid = np.linspace(-0.5, 1.5, 9)
+    assert np.allclose(c(grid), m(grid))
+    assert np.allclose(c(np.array([-3.0, 9.0])), m(np.array([-0.5, 1.5])))

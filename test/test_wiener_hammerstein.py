@@ -1,0 +1,100 @@
+"""Wiener-Hammerstein (L-N-L) identification from the best linear approximation, and the
+``input_dynamics`` cause of the diagnosis: numbers against the generating system."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hammer_ros.diagnosis.causes import CAUSES, EXTENSION, MEANING
+from hammer_ros.diagnosis.diagnose import diagnose_record
+from hammer_ros.diagnosis.generators import generate_case
+from hammer_ros.diagnosis.wiener_hammerstein import fit_output_error, fit_wiener_hammerstein, splits
+from hammer_ros.identification.linear import LinearModel, root_rss_error
+
+NOISE = 0.01
+FRONT = LinearModel.from_zeros_poles([], [0.75 + 0.3j, 0.75 - 0.3j], 1.0)  # a resonant low-pass ahead of the map
+BACK = LinearModel.from_zeros_poles([-0.5], [0.6], 1.0)
+
+
+def true_map(x: np.ndarray) -> np.ndarray:
+    """A diode-like map: a soft knee, steep above it, with a gentle slope below."""
+    return 0.2 * x + np.log1p(np.exp(4.0 * (x - 0.3))) / 4.0
+
+
+def lnl(u: np.ndarray) -> np.ndarray:
+    return BACK.simulate(true_map(FRONT.simulate(u)))
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    rng = np.random.default_rng(7)
+    u = rng.standard_normal(3000)
+    y = lnl(u) + NOISE * rng.standard_normal(u.size)
+    fit = fit_wiener_hammerstein(u[200:], y[200:], FRONT.order + BACK.order)
+    return fit, rng
+
+
+def test_the_simulation_error_is_at_the_noise_level(fitted):
+    fit, rng = fitted
+    assert fit.rms < 1.25 * NOISE  # on the estimation data: the noise, not the model, is left
+    u = rng.standard_normal(2500)
+    y_true = lnl(u)
+    error = (y_true - fit.model.simulate(u))[500:]
+    assert np.sqrt(np.mean(error**2)) < 0.5 * NOISE  # on fresh, noise-free data: the model is the system's
+
+
+def test_the_poles_of_g1_g2_are_the_systems(fitted):
+    fit, rng = fitted
+    m = fit.model
+    product = LinearModel(np.convolve(m.front.b, m.back.b), np.convolve(m.front.a, m.back.a))
+    u = rng.standard_normal(4000)  # G1 G2 (both blocks of full order) reduced to the system's order
+    reduced = fit_output_error(u, product.simulate(u), FRONT.order + BACK.order)
+    assert np.std(reduced.simulate(u) - product.simulate(u)) < 0.01 * np.std(product.simulate(u))
+    true_poles = np.concatenate([FRONT.poles, BACK.poles])
+    assert root_rss_error(true_poles, reduced.poles) < 0.03
+    assert root_rss_error(true_poles, fit.bla.poles) < 0.1  # the BLA's poles are the blocks' (Bussgang)
+
+
+def test_the_map_is_recovered_up_to_scale(fitted):
+    fit, rng = fitted
+    u = rng.standard_normal(3000)
+    x_true, x_hat = FRONT.simulate(u)[200:], fit.model.intermediate(u)[200:]
+    for truth, estimate in ((x_true, x_hat), (true_map(x_true), fit.model.nonlinearity(x_hat))):
+        basis = np.column_stack([np.ones(truth.size), estimate])
+        residual = truth - basis @ np.linalg.lstsq(basis, truth, rcond=None)[0]
+        assert np.std(residual) < 0.02 * np.std(truth)  # affine in the truth: only scale and offset are free
+
+
+def test_the_bla_is_split_over_every_proper_assignment():
+    bla = LinearModel.from_zeros_poles([-0.5], [0.6, 0.75 + 0.3j, 0.75 - 0.3j], 2.0)
+    pairs = splits(bla)
+    # poles {0.6}, {the pair}, zero {-0.5}: 2 x 2 x 2 = 8 assignments, less the 2 that leave a block
+    # with the zero and no pole (improper)
+    assert len(pairs) == 6
+    for g1, g2 in pairs:
+        assert sorted(np.round(np.concatenate([g1.poles, g2.poles]), 9).tolist(), key=abs) == \
+            sorted(np.round(bla.poles, 9).tolist(), key=abs)
+        product = np.convolve(g1.b, g2.b)
+        assert np.allclose(product / np.max(np.abs(product)), _normalised(bla.b, product.size))
+
+
+def _normalised(b: np.ndarray, size: int) -> np.ndarray:
+    b = np.pad(b, (0, max(0, size - b.size)))[:size]
+    return b / np.max(np.abs(b))
+
+
+def test_input_dynamics_is_a_cause_with_a_meaning_and_an_extension():
+    assert "input_dynamics" in CAUSES and "input_dynamics" in MEANING and "input_dynamics" in EXTENSION
+
+
+def test_diagnose_names_input_dynamics_on_a_generated_lnl_record():
+    case = generate_case("input_dynamics", 3)
+    d = diagnose_record(case.v, case.y, case.order)
+    assert d.cause == "input_dynamics", (case.description, d.candidates)
+    assert d.gain > 2.0
+    doc = d.to_json()
+    front, back = doc["extended"]["front"], doc["extended"]["back"]
+    assert len(front["poles"]) == len(back["poles"]) == case.order
+    assert doc["extended"]["nonlinearity"]["kind"] == "piecewise_linear"
+
