@@ -42,10 +42,7 @@ The records and what to expect:
   listed cause holds exactly: ``output_feedback`` feeds back a map of the position, not the
   velocity, and ``input_dynamics`` holds it to first order (the velocity is the force
   low-pass filtered by the mass, M/Fv = 0.47 s, so the friction is roughly a static map of a
-  filtered input); both count as "nearest listed". Seen on the diagnosis as it changed during
-  this work: an ``output_feedback`` extension fed back a map of the position that, with the
-  near-integrator poles, keeps the simulated position bounded; the ``input_dynamics``
-  extension (L-N-L) follows the test record closely. Taking the velocity diff(qm)/Ts as the
+  filtered input); both count as "nearest listed". Taking the velocity diff(qm)/Ts as the
   output instead (not the benchmark's convention, so not a row here) removes the integrator,
   and ``output_feedback`` then puts a breakpoint of the feedback map at zero velocity: the
   Coulomb friction itself.
