@@ -29,13 +29,11 @@ import numpy as np
 from scipy import signal
 from scipy.optimize import minimize_scalar
 
-from ..identification.piecewise_linear_ls import point_slope_basis, point_slope_map
-from ..identification.regression import build_regression, solve_least_squares
 from ..identification.result import rms_error
 from ..identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
 from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test
-from .extensions import ExtendedModel, map_plot
+from .extensions import ExtendedModel, linear_fit, map_on, map_plot
 from .hammerstein import quantile_partition
 from .split import Split
 
@@ -144,10 +142,7 @@ def _output_map(x: np.ndarray, y: np.ndarray, skip: int) -> tuple[PiecewiseLinea
 
     def fit(xs: np.ndarray, ys: np.ndarray) -> PiecewiseLinearMap:
         partition = quantile_partition(xs, count)
-        primary = max(1, partition.size // 2)
-        basis = np.column_stack([point_slope_basis(xs, partition, primary), np.ones(xs.size)])
-        theta = solve_least_squares(basis, ys)
-        return point_slope_map(partition, primary, theta[:-1], float(theta[-1]))
+        return map_on(partition, max(1, partition.size // 2), xs, ys)
 
     cut = int(round((1.0 - HELD_BACK) * x.size))
     early = fit(x[:cut], y[:cut])
@@ -199,9 +194,7 @@ def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> Exten
     """y = M(u) + G[u], G of order 2 (paper 003's feedforward structure around M)."""
     inner, v = model.simulate, split.v_est
     x = inner(v)
-    reg = build_regression(split.y_est - x, v, 2, 0)
-    a, coefficients = reg.split(solve_least_squares(reg.phi, reg.target))
-    b0, a0 = coefficients[:, 0], stabilised_denominator(np.concatenate([[1.0], a]))
+    b0, a0 = linear_fit(v, split.y_est - x, 2, 0)
     b, a = _filter_refined(v, split.y_est, b0, a0, x, skip)
 
     def simulate(u: np.ndarray) -> np.ndarray:

@@ -377,7 +377,7 @@ def _numerator_layout(b: np.ndarray, delay: int) -> tuple[np.ndarray, np.ndarray
     return template, np.array([i for i in range(delay, b.size) if i != fixed], dtype=int)
 
 
-def _map_on(partition: np.ndarray, primary: int, x: np.ndarray, target: np.ndarray) -> PiecewiseLinearMap:
+def map_on(partition: np.ndarray, primary: int, x: np.ndarray, target: np.ndarray) -> PiecewiseLinearMap:
     """The point-slope map on ``partition`` fitting target(x) in least squares."""
     theta = solve_least_squares(np.column_stack([point_slope_basis(x, partition, primary), np.ones(x.size)]), target)
     return point_slope_map(partition, primary, theta[:-1], float(theta[-1]))
@@ -456,7 +456,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel | None:
         starts.append(layout.pack(stabilised_denominator(est.linear.a), est.linear.b, est.nonlinearity,
                                   est.feedback))
     if base.delay >= 1:
-        starts.append(layout.pack(base.a, base.b, _map_on(f_part, layout.f_primary, v, base.static(v)), zero_h))
+        starts.append(layout.pack(base.a, base.b, map_on(f_part, layout.f_primary, v, base.static(v)), zero_h))
     deterministic = len(starts)
     rng = np.random.default_rng(0)
     scale = float(np.std(base.static(v))) or 1.0
@@ -563,7 +563,7 @@ def _choose_tails(theta: np.ndarray, v: np.ndarray, y: np.ndarray, skip: int, fi
 # --------------------------------------------------------------------------- parallel path
 
 
-def _linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int) -> tuple[np.ndarray, np.ndarray]:
+def linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int) -> tuple[np.ndarray, np.ndarray]:
     """(b, a) of an ARX fit of target on u (shared builder), stabilised."""
     reg = build_regression(target, u, order, delay)
     theta = solve_least_squares(reg.phi, reg.target)
@@ -610,7 +610,7 @@ def extend_parallel_path(ctx: Context) -> ExtendedModel | None:
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
     eta = base.basis(v)
-    b2, a2 = _linear_fit(v, y - base.simulate(v), PATH_ORDER, 0)
+    b2, a2 = linear_fit(v, y - base.simulate(v), PATH_ORDER, 0)
     starts = [Feedforward(base, b2, a2), _common_denominator_start(ctx), _billings_fakhouri_start(ctx)]
     fits = [_refine_feedforward(start, v, y, eta, skip) for start in starts if start is not None]
     costs = [float(np.sum((y - f.simulate(v, eta))[skip:] ** 2)) for f in fits]
@@ -627,7 +627,7 @@ def _impulse_fit(numerator: np.ndarray, denominator: np.ndarray, order: int,
                  delay: int) -> tuple[np.ndarray, np.ndarray]:
     """(b, a) of the given order fitted to the impulse response of numerator/denominator."""
     impulse = np.eye(1, IMPULSE_LENGTH, 0)[0]
-    return _linear_fit(impulse, signal.lfilter(numerator, denominator, impulse), order, delay)
+    return linear_fit(impulse, signal.lfilter(numerator, denominator, impulse), order, delay)
 
 
 def _common_denominator_start(ctx: Context) -> Feedforward | None:
