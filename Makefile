@@ -14,7 +14,7 @@ setup: $(STAMP)
 $(STAMP): setup.py requirements/lock.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	env -u LD_LIBRARY_PATH -u _ROS_WHEELS_BOOTSTRAP_COMPLETE $(BIN)/python -m pip install -q --disable-pip-version-check \
-	    -c requirements/lock.txt -e ".[ros,test]"
+	    -c requirements/lock.txt -e ".[ros,fleet,test]"
 	touch $(STAMP)
 
 test: setup

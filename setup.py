@@ -22,7 +22,12 @@ ROS_JAZZY_WHEELS = [
     "ros-jazzy-builtin-interfaces==2.0.3",
     "ros-jazzy-rcl-interfaces==2.0.3",
     "ros-jazzy-lifecycle-msgs==2.0.3",
+    "ros-jazzy-std-srvs==5.3.6",
+    "foxglove-sdk==0.30.3",  # in-process Foxglove WebSocket server of the node (foxglove_port)
 ]
+
+# hammer-ros fleet: one Dask task per bag; fleet.parquet through pyarrow
+FLEET = ["dask[distributed]==2026.8.0", "pyarrow==26.0.1"]
 
 setup(
     name=PACKAGE,
@@ -46,7 +51,14 @@ setup(
     ],
     extras_require={
         "ros": ROS_JAZZY_WHEELS,
-        "test": ["pytest>=7", "rosbags>=0.10", "ruff>=0.4", "colcon-common-extensions>=0.3"],
+        "fleet": FLEET,
+        "test": [
+            "pytest>=7",
+            "rosbags>=0.10",
+            "ruff>=0.4",
+            "colcon-common-extensions>=0.3",
+            "websockets>=12",  # a Foxglove protocol client in the tests
+        ],
     },
     zip_safe=True,
     maintainer="hammer_ros developers",
