@@ -20,13 +20,13 @@ STOP_TIMEOUT = 10.0
 
 
 class RosProcess:
-    """A ``python -m MODULE --ros-args -p ...`` child with its output in a log file."""
+    """A ``python -m MODULE [OPTIONS] --ros-args -p ...`` child with its output in a log file."""
 
-    def __init__(self, module: str, parameters: dict, env: dict, log: Path) -> None:
+    def __init__(self, module: str, parameters: dict, env: dict, log: Path, options: tuple[str, ...] = ()) -> None:
         self.log = log
         with open(log, "w") as out:
-            self.process = subprocess.Popen([sys.executable, "-m", module, *ros_arguments(parameters)], env=env,
-                                            stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            self.process = subprocess.Popen([sys.executable, "-m", module, *options, *ros_arguments(parameters)],
+                                            env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
 
     def stop(self, sig: int = signal.SIGINT) -> int:
         """Send ``sig`` and wait; a process that does not exit is killed and reported as -9."""

@@ -76,3 +76,30 @@ def test_constant_beyond_keeps_the_map_inside_and_holds_it_outside():
     grid = np.linspace(-0.5, 1.5, 9)
     assert np.allclose(c(grid), m(grid))
     assert np.allclose(c(np.array([-3.0, 9.0])), m(np.array([-0.5, 1.5])))
+
+
+def test_an_extension_that_cannot_be_fitted_gives_its_reason_in_one_line():
+    """A record too short for sliding windows and without spectral lines: the time-varying and
+    periodic extensions raise NotFitted with a reason that names what is missing, and the
+    diagnosis' ``fit`` turns it into a ``not_fitted`` row instead of a traceback."""
+    from hammer_ros.diagnosis.evidence import spectral_lines, windowed_variation
+    from hammer_ros.diagnosis.extensions import EXTENSIONS, Context, NotFitted, failure_reason
+    from hammer_ros.diagnosis.hammerstein import fit_baseline
+
+    v, y = _record(7, 160, saturate=False, path=False)
+    split = split_record(v, y, 0.6)
+    base = fit_baseline(split.v_est, split.y_est, 3, None)
+    x_est = base.simulate(split.v_est)
+    ctx = Context(split, base, spectral_lines(split.y_est - x_est, [split.v_est, x_est]),
+                  windowed_variation(split.y_all, np.concatenate([x_est, split.validation_output(base.simulate)]), 0))
+    reasons = {}
+    for cause in ("time_varying", "periodic_disturbance"):
+        try:
+            EXTENSIONS[cause](ctx)
+        except NotFitted as error:
+            reasons[cause] = failure_reason(error)
+    assert "samples" in reasons["time_varying"] and "\n" not in reasons["time_varying"]
+    assert reasons["periodic_disturbance"] == "no spectral line in the estimation residual"
+    assert failure_reason(ValueError("bad\nshape")) == "ValueError: bad shape"
+    doc = diagnose(split, order=3).diagnosis.to_json()
+    assert all(set(row) == {"cause", "reason"} and "\n" not in row["reason"] for row in doc["not_fitted"])

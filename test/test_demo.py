@@ -55,8 +55,11 @@ def _resolve(message: dict, path: str):
 
 
 def test_dashboard_layout_plots_fields_the_node_publishes():
+    """Every path of the Foxglove layout exists in the dashboard channels (``ros.dashboard``) the
+    node serves and ``replay --out`` records, and every channel is shown."""
     from hammer_ros.identification.simulate import simulate_hammerstein
-    from hammer_ros.ros.outputs import OUTPUT_TOPICS, diagnostics_message, result_messages
+    from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic
+    from hammer_ros.ros.outputs import diagnostics_message, result_messages
     from hammer_ros.ros.plant_node import DEMO_PLANT, static_map
     from hammer_ros.streaming.config import EngineConfig
     from hammer_ros.streaming.engine import StreamingEngine
@@ -69,9 +72,12 @@ def test_dashboard_layout_plots_fields_the_node_publishes():
     engine.add_response(t, simulate_hammerstein(v, static_map("dead_zone", 0.2), DEMO_PLANT))
     outcome = engine.solve()
     assert outcome.ok, outcome.reason
-    messages = {topic.replace("~/", "/hammer_ros/"): message for topic, _, message in result_messages(outcome, 1.0)}
-    messages["/diagnostics"] = diagnostics_message(engine.stats, outcome, 1.0)
-    assert {topic.replace("~/", "/hammer_ros/") for topic, _ in OUTPUT_TOPICS} == set(messages)
+    results = result_messages(outcome, 1.0)
+    results.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics_message(engine.stats, outcome,
+                                                                                               1.0)))
+    results.append(("~/diagnosis", "std_msgs/msg/String", {"data": json.dumps({"cause": "none", "samples": 3000})}))
+    messages = {dashboard_topic(channel): message for channel, message in dashboard_messages(results, 1.0)}
+    assert set(messages) == {dashboard_topic(name) for name in CHANNELS}
 
     panels = json.dumps(layout["layout"])
     paths = []

@@ -113,7 +113,7 @@ def test_only_the_ros_edge_imports_rclpy_and_message_packages():
 
 
 def test_every_layer_says_what_it_holds():
-    for package in ("identification", "streaming", "io", "ros", "diagnosis", "cli", "tools"):
+    for package in ("identification", "streaming", "io", "ros", "diagnosis", "fleet", "cli", "tools"):
         doc = ast.get_docstring(ast.parse((PACKAGE / package / "__init__.py").read_text()))
         assert doc and len(doc) > 80, package
 

@@ -15,6 +15,7 @@ from make_sample_bags import G1, RESONANT
 
 from hammer_ros.cli import main
 from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
 
 REPO = Path(__file__).resolve().parents[1]
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")
@@ -59,8 +60,12 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
     doc = run_json(capsys, "replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml",
                    "--solve-rate", "1", "--out", str(out), "--json")
     with AnyReader([out]) as reader:
-        types = {c.topic: c.msgtype for c in reader.connections}
-        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+        ros = [c for c in reader.connections if c.ext.serialization_format == "cdr"]
+        types = {c.topic: c.msgtype for c in ros}
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages(ros)]
+        dashboard = {c.topic: c.msgtype for c in reader.connections if c not in ros}  # Foxglove's JSON channels
+    assert dashboard == {dashboard_topic(name): CHANNELS[name][0] for name in
+                         ("model", "poles", "zeros", "nonlinearity", "fit", "diagnostics")}
     joint_state = "sensor_msgs/msg/JointState"
     assert types == {"/hammer_ros/model": "std_msgs/msg/String", "/hammer_ros/poles": joint_state,
                      "/hammer_ros/zeros": joint_state, "/hammer_ros/markov": joint_state,

@@ -26,13 +26,16 @@ JOINT_CONFIG = REPO / "msg_config" / "joint_state_saturation.yaml"
 
 
 def read_mcap(path: Path) -> dict[str, list]:
-    """topic -> [(log time ns, message)] of every message, read by rosbags (independent reader)."""
+    """topic -> [(log time ns, message)] of every message, read by rosbags (independent reader):
+    the ROS 2 messages deserialized, the Foxglove dashboard channels (JSON) parsed."""
     from rosbags.highlevel import AnyReader
 
     by_topic: dict[str, list] = {}
     with AnyReader([path]) as reader:
         for connection, stamp, raw in reader.messages():
-            by_topic.setdefault(connection.topic, []).append((stamp, reader.deserialize(raw, connection.msgtype)))
+            message = (reader.deserialize(raw, connection.msgtype) if connection.ext.serialization_format == "cdr"
+                       else json.loads(raw))
+            by_topic.setdefault(connection.topic, []).append((stamp, message))
     return by_topic
 
 

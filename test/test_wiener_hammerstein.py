@@ -98,3 +98,18 @@ def test_diagnose_names_input_dynamics_on_a_generated_lnl_record():
     assert len(front["poles"]) == len(back["poles"]) == case.order
     assert doc["extended"]["nonlinearity"]["kind"] == "piecewise_linear"
 
+
+
+def test_direct_term_keeps_the_better_of_the_two_first_lags():
+    """``direct_term``: the fit with G1's numerator free from lag 0 and the fit free from the
+    given delay, the one with the smaller estimation RMS kept (both blocks here have a direct
+    term); each is the plain fit with that delay."""
+    front = LinearModel(np.array([0.5, 0.3]), np.array([1.0, -0.6]))
+    rng = np.random.default_rng(11)
+    u = rng.standard_normal(2000)
+    y = BACK.simulate(true_map(front.simulate(u))) + NOISE * rng.standard_normal(u.size)
+    fits = {d: fit_wiener_hammerstein(u, y, 2, delay=d) for d in (0, 1)}
+    chosen = fit_wiener_hammerstein(u, y, 2, delay=1, direct_term=True)
+    best = min(fits, key=lambda d: fits[d].rms)
+    assert chosen.delay == best and chosen.rms == fits[best].rms
+    assert chosen.rms < 1.25 * NOISE

@@ -112,6 +112,24 @@ def build_parser() -> argparse.ArgumentParser:
     # None = take it from --config (then the engine default): the identify options' defaults
     p.set_defaults(func=_delegate("hammer_ros.cli.replay"), method=None, order=None, delay=None, poly=None)
 
+    p = sub.add_parser("fleet", help="replay many bags on Dask distributed; what changed per group")
+    p.add_argument("bags", nargs="*", metavar="BAGS", help=".mcap files, rosbag2 directories, directories to search")
+    p.add_argument("--manifest", default=None, metavar="FILE", help="CSV: a path column and label columns")
+    add_data_options(p)
+    add_identify_options(p)
+    for option, kind in (("--window", positive_int), ("--sample-rate", float), ("--solve-rate", float),
+                         ("--forgetting", float)):
+        p.add_argument(option, type=kind, default=None, help=f"as replay {option}")
+    p.add_argument("--interpolation", choices=("zoh", "linear"), default=None, help="as replay --interpolation")
+    p.add_argument("--refine", action="store_true", help="as replay --refine")
+    p.add_argument("--diagnose", action="store_true", help="also diagnose each bag's final window")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="an existing Dask scheduler (tcp://host:8786)")
+    p.add_argument("--workers", type=int, default=None, help="processes of the local cluster (default: cores)")
+    p.add_argument("--out", default=None, metavar="DIR", help="fleet.parquet, fleet.html and each bag's results MCAP")
+    p.add_argument("--resume", action="store_true", help="skip the bags already in DIR/fleet.parquet")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=_delegate("hammer_ros.cli.fleet"), method=None, order=None, delay=None, poly=None)
+
     p = sub.add_parser("demo", help="simulated plant + live identification node")
     p.add_argument("--duration", type=float, default=60.0, help="seconds (default 60)")
     p.set_defaults(func=_delegate("hammer_ros.tools.demo"))
@@ -128,7 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true")
     p.add_argument("--json", action="store_true")
     p.add_argument("--only", default=None, type=lambda text: [s.strip() for s in text.split(",") if s.strip()],
-                   help="comma-separated sections: ingest,node,replay,solve,peers,memory (default all)")
+                   help="comma-separated sections: ingest,node,replay,solve,peers,memory,fleet (default all)")
     p.add_argument("--profile", action="store_true", help="print a cProfile of each section on stderr")
     p.set_defaults(func=_delegate("hammer_ros.tools.bench"))
     return parser

@@ -68,6 +68,7 @@ def summary(d: Diagnosis) -> str:
     others = [f"{c} {g:.3f}" for c, g in d.candidates if c != d.cause]
     if others:
         lines.append(f"also fitted (gain): {', '.join(others)}")
+    lines += [f"not fitted: {c}: {reason}" for c, reason in d.not_fitted]
     failed = [e for e in d.evidence if not e.passed]
     passed = len(d.evidence) - len(failed)
     lines.append(f"evidence  {passed} of {len(d.evidence)} tests passed" + (":" if failed else ""))

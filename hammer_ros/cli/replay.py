@@ -5,6 +5,7 @@ batches between solves); ``--rate R`` paces the bag at R x real time and publish
 on the live ROS 2 graph under the node name ``hammer_ros`` (the node's topics, so the same
 dashboard works); ``--out`` writes every result (``outputs``) into an MCAP file.
 
+The loop itself is ``hammer_ros.io.replay.replay_bag`` (also each ``hammer-ros fleet`` task).
 SIGINT/SIGTERM stop it at the next message: a final solve on what was read, ``--out`` finished
 and closed, the final model printed, exit 128 + signal (``SignalStop``).
 
@@ -25,29 +26,13 @@ import threading
 import time
 from pathlib import Path
 
-from ..errors import IdentificationError, UsageError
-from ..io.bags import (
-    FLUSH_SAMPLES,
-    BagReadStats,
-    ResultWriter,
-    bag_files,
-    bag_message_counts,
-    check_fields,
-    check_topics,
-    engine_config_from_params,
-    forget_warnings,
-    iter_bag_samples,
-    load_msg_config,
-    node_topic,
-    stream_specs,
-)
-from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
+from ..errors import UsageError
+from ..io.bags import bag_message_counts, engine_config_from_params, forget_warnings, load_msg_config, stream_specs
+from ..io.replay import NODE_NAME, check_replay_input, replay_bag
 from ..streaming.config import CLS_STRUCTURES, EngineConfig
-from ..streaming.engine import SolveOutcome, StreamingEngine
 from .common import check_option_conflicts, format_model
 
 DEFAULT_SOLVE_RATE = 2.0
-NODE_NAME = "hammer_ros"
 
 
 def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tuple[EngineConfig, float]:
@@ -136,109 +121,45 @@ def run(args: argparse.Namespace) -> int:
     config, solve_rate = replay_settings(args, params, source)
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
-    check_topics(args.bag, (excitation, response))
-    check_fields(args.bag, (excitation, response))  # every user mistake before any output
-    if args.out and any(Path(args.out).resolve() == f.resolve() for f in bag_files(args.bag)):
-        raise UsageError(f"--out: {args.out} is the bag being replayed (it would be overwritten)")
-    counts = bag_message_counts(args.bag)
-    total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
-    read = BagReadStats()
-    samples = iter_bag_samples(args.bag, excitation, response, read)
-    engine = StreamingEngine(config)
-    progress = Progress(total)
-    last_ok: SolveOutcome | None = None
-    last: SolveOutcome | None = None
-    frame_id = str(params.get("frame_id", ""))
-    writer = publisher = None
-    done = 0
+    check_replay_input(args.bag, excitation, response, args.out)  # every user mistake before any output
+    progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in {excitation.topic, response.topic}))
+    publisher = None
     stop = SignalStop()
     try:
-        publisher = None
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
 
             publisher = LivePublisher(NODE_NAME)
         stop.__enter__()  # after rclpy.init, which installs its own handlers
-        writer = ResultWriter(args.out) if args.out else None
-        started = time.perf_counter()
-
-        def solve(bag_time: float) -> None:
-            nonlocal last_ok, last
-            engine.flush()
-            last = engine.solve()
-            last_ok = last if last.ok else last_ok
-            stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
-            messages = result_messages(last, stamp, frame_id)
-            if not last.ok and last_ok is not None:
-                messages.append(stale_model_message(last_ok, last))
-            diagnostics = diagnostics_message(engine.stats, last, stamp, NODE_NAME)
-            diagnostics["status"][0]["values"].extend(_bag_values(read))
-            messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-            for topic, type_name, message in messages:
-                if writer:  # first into the file: whatever is published is already in it
-                    writer.write(node_topic(topic, NODE_NAME), type_name, message, round(stamp * 1e9))
-                if publisher:
-                    publisher.publish(topic, type_name, message)
-
-        bag_start = next_solve = None
-        bag_time = float("nan")
-        for sample in samples:
-            if bag_start is None:
-                bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
-            if publisher:  # pace: bag time / rate = wall time since the start
-                wait = (sample.stamp - bag_start) / args.rate - (time.perf_counter() - started)
-                if wait > 0.005:
-                    stop.sleep(wait)
-            if stop.signal is not None:
-                break
-            if sample.stamp >= next_solve:
-                solve(sample.stamp)
-                next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
-            engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
-            if engine.buffered >= FLUSH_SAMPLES:
-                engine.flush()
-            bag_time = sample.stamp
-            done += 1
-            progress.update(done, engine.stats.aligned, engine.stats.solves)
-        solve(bag_time)  # the final model, also after a signal
-        progress.update(done, engine.stats.aligned, engine.stats.solves, force=True)
+        result = replay_bag(args.bag, excitation, response, config, solve_rate,
+                            frame_id=str(params.get("frame_id", "")), out=args.out, publisher=publisher,
+                            rate=args.rate, stop=stop,
+                            progress=lambda done, samples, solves, force: progress.update(done, samples, solves, force))
     finally:
         progress.close()
         try:
-            if writer:
-                writer.close()
             if publisher:
                 publisher.close()
         finally:
             stop.__exit__()
-    read.report(args.bag)
+    result.read.report(args.bag)
     if stop.signal is not None:
         name = signal.Signals(stop.signal).name
-        print(f"hammer-ros: replay stopped by {name} after {done} of {total} messages; final model solved on the "
-              f"{engine.stats.aligned} samples read" + (f"; {writer.count} messages in {args.out}" if writer else ""),
-              file=sys.stderr)
-    wall = time.perf_counter() - started
-    if last_ok is None:
-        reason = last.reason if last else "no messages"
-        if stop.signal is not None:
+        print(f"hammer-ros: replay stopped by {name} after {result.messages} of {result.total} messages; final model "
+              f"solved on the {result.stats.aligned} samples read"
+              + (f"; {result.written} messages in {args.out}" if args.out else ""), file=sys.stderr)
+        if result.last_ok is None:
+            reason = result.last.reason if result.last else "no messages"
             print(f"hammer-ros: no model identified ({reason})", file=sys.stderr)
             return 128 + stop.signal
-        raise IdentificationError(f"{args.bag}: no model identified ({reason})")
-    doc = dict(last_ok.doc)
-    doc.update(samples=int(engine.stats.aligned), solves=int(engine.stats.solves), wall_s=round(wall, 4))
+    doc = result.document()
     if args.json:
         json.dump(doc, sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
     else:
-        rate = engine.stats.aligned / wall if wall > 0 else float("inf")
+        wall = result.wall_s
+        rate = result.stats.aligned / wall if wall > 0 else float("inf")
         print(format_model(doc))
         print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"
-              + (f"; {writer.count} messages -> {Path(args.out)}" if writer else ""))
+              + (f"; {result.written} messages -> {Path(args.out)}" if args.out else ""))
     return 0 if stop.signal is None else 128 + stop.signal
-
-
-def _bag_values(read: BagReadStats) -> list[dict]:
-    """Diagnostics values of what reading the bag skipped so far."""
-    values = {"bag_damage": len(read.damage), "bag_oversized_messages": read.oversized,
-              "bag_undecodable_messages": read.undecodable, "bag_field_errors": sum(read.field_errors.values())}
-    return [{"key": k, "value": str(v)} for k, v in values.items()]

@@ -33,7 +33,7 @@ from ..identification.result import rms_error
 from ..identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
 from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test
-from .extensions import ExtendedModel, linear_fit, map_on, map_plot
+from .extensions import NUMERICAL_FAILURES, ExtendedModel, failure_reason, linear_fit, map_on, map_plot
 from .hammerstein import quantile_partition
 from .split import Split
 
@@ -61,11 +61,13 @@ class Step:
 
 @dataclass(frozen=True, eq=False)
 class Chain:
-    """The steps in order, the model of each, and why the chain stopped."""
+    """The steps in order, the model of each, why the chain stopped, and the follow-ups that
+    could not be fitted (cause, one-line reason)."""
 
     steps: tuple[Step, ...]
     models: tuple[ExtendedModel, ...]
     stopped: str
+    not_fitted: tuple[tuple[str, str], ...] = ()
 
     @property
     def final(self) -> ExtendedModel:
@@ -92,13 +94,18 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
     steps = [Step(first.cause, first.structure, first_rms, baseline_rms / max(first_rms, 1e-300))]
     models = [first]
     val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
+    failures: list[tuple[str, str]] = []
+
+    def stop(reason: str) -> Chain:
+        return Chain(tuple(steps), tuple(models), reason, tuple(failures))
+
     while True:
         model = models[-1]
         if len(steps) >= MAX_STEPS:
-            return Chain(tuple(steps), tuple(models), f"the cap of {MAX_STEPS} steps")
+            return stop(f"the cap of {MAX_STEPS} steps")
         if model.simulate is None:
-            return Chain(tuple(steps), tuple(models), f"the {model.cause} model is re-fitted along the record, not "
-                         "one simulator of the input that a further step could extend")
+            return stop(f"the {model.cause} model is re-fitted along the record, not one simulator of the input that "
+                        "a further step could extend")
         x_val = model.validation_output
         e_val = split.y_val - x_val
         supported = []
@@ -108,22 +115,25 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
             if f_value > critical:
                 supported.append(cause)
         if not supported:
-            return Chain(tuple(steps), tuple(models), "no signature of a further effect in the validation residual")
+            return stop("no signature of a further effect in the validation residual")
         fits = {}
         for cause in supported:
             try:
                 fitted = FOLLOW_UPS[cause](split, model, skip)
-            except (np.linalg.LinAlgError, ValueError):
-                fitted = None
-            if fitted is not None and np.all(np.isfinite(fitted.validation_output)):
+            except NUMERICAL_FAILURES as error:
+                failures.append((cause, f"step {len(steps) + 1}: {failure_reason(error)}"))
+                continue
+            if np.all(np.isfinite(fitted.validation_output)):
                 fits[cause] = fitted
+            else:
+                failures.append((cause, f"step {len(steps) + 1}: its simulation is not finite on the validation input"))
         gains = {c: steps[-1].rms / max(rms_error(split.y_val, f.validation_output), 1e-300) for c, f in fits.items()}
         if not gains:
-            return Chain(tuple(steps), tuple(models), f"no follow-up could be fitted for {', '.join(supported)}")
+            return stop(f"no follow-up could be fitted for {', '.join(supported)}")
         best = max(gains, key=gains.get)
         if gains[best] < MIN_STEP_GAIN:
-            return Chain(tuple(steps), tuple(models), f"the best further step ({best}) gains x{gains[best]:.3f} on "
-                         f"validation data, less than x{MIN_STEP_GAIN}")
+            return stop(f"the best further step ({best}) gains x{gains[best]:.3f} on validation data, less than "
+                        f"x{MIN_STEP_GAIN}")
         fitted = fits[best]
         steps.append(Step(best, fitted.structure, rms_error(split.y_val, fitted.validation_output), gains[best]))
         models.append(fitted)
@@ -162,7 +172,7 @@ def constant_beyond(m: PiecewiseLinearMap, lo: float, hi: float) -> PiecewiseLin
     return PiecewiseLinearMap(c, m(c), 0.0, 0.0)
 
 
-def follow_output_nonlinearity(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel | None:
+def follow_output_nonlinearity(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = N(M(u)) (a sensor or an output stage after the model)."""
     inner = model.simulate
     x = inner(split.v_est)
@@ -190,7 +200,7 @@ def _filter_refined(source: np.ndarray, target: np.ndarray, b0: np.ndarray, a0: 
     return theta[:nb], stabilised_denominator(np.concatenate([[1.0], theta[nb:]]))
 
 
-def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel | None:
+def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = M(u) + G[u], G of order 2 (paper 003's feedforward structure around M)."""
     inner, v = model.simulate, split.v_est
     x = inner(v)
@@ -205,7 +215,7 @@ def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> Exten
                          details, (), simulate)
 
 
-def follow_unmodeled_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel | None:
+def follow_unmodeled_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = H[M(u)], H of order 2 started at H = 1 (dynamics the model's blocks lack)."""
     inner = model.simulate
     x = inner(split.v_est)
@@ -226,7 +236,7 @@ def _low_pass(p: float) -> Simulator:
     return lambda u: steady_state_filter(np.array([1.0 - p]), np.array([1.0, -p]), u)
 
 
-def follow_input_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel | None:
+def follow_input_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = M(L_p[u]) with the unit-gain low-pass L_p = (1 - p) / (1 - p q^-1) (a filter ahead of
     everything the model holds): p from a scan, then a bounded scalar search."""
     inner, v, y = model.simulate, split.v_est, split.y_est
@@ -252,7 +262,7 @@ def follow_input_dynamics(split: Split, model: ExtendedModel, skip: int) -> Exte
                          {"input_pole": p}, (), simulate)
 
 
-FOLLOW_UPS: dict[str, Callable[[Split, ExtendedModel, int], ExtendedModel | None]] = {
+FOLLOW_UPS: dict[str, Callable[[Split, ExtendedModel, int], ExtendedModel]] = {
     "output_nonlinearity": follow_output_nonlinearity,
     "parallel_path": follow_parallel_path,
     "unmodeled_dynamics": follow_unmodeled_dynamics,

@@ -40,7 +40,7 @@ from .evidence import (
     spectral_lines,
     windowed_variation,
 )
-from .extensions import EXTENSIONS, Context, ExtendedModel
+from .extensions import EXTENSIONS, NUMERICAL_FAILURES, Context, ExtendedModel, failure_reason
 from .hammerstein import HammersteinModel, fit_baseline, select_dead_time, transient_samples
 from .residual_tests import CorrelationTest, Evidence, residual_tests
 from .split import Split, split_record
@@ -80,6 +80,7 @@ class Diagnosis:
     baseline_model: dict = field(default_factory=dict)
     steps: tuple[Step, ...] = ()
     chain_stopped: str | None = None
+    not_fitted: tuple[tuple[str, str], ...] = ()  # (cause, one-line reason) of every extension tried in vain
 
     def to_json(self) -> dict:
         doc = {
@@ -92,6 +93,7 @@ class Diagnosis:
             "candidates": [{"cause": c, "rms_ratio": float(g)} for c, g in self.candidates],
             "steps": [s.to_json() for s in self.steps],
             "chain_stopped": self.chain_stopped,
+            "not_fitted": [{"cause": c, "reason": r} for c, r in self.not_fitted],
         }
         return strict_json(doc)
 
@@ -149,11 +151,17 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     baseline_score = _score("hammerstein", split.y_val, x_val)
     extensions: dict[str, ExtendedModel] = {}
     gains: dict[str, float] = {}
+    not_fitted: dict[str, str] = {}
 
     def fit(candidates: list[str]) -> None:
         for candidate in candidates:
-            extended = EXTENSIONS[candidate](ctx)
-            if extended is None or not np.all(np.isfinite(extended.validation_output)):
+            try:
+                extended = EXTENSIONS[candidate](ctx)
+            except NUMERICAL_FAILURES as error:
+                not_fitted[candidate] = failure_reason(error)
+                continue
+            if not np.all(np.isfinite(extended.validation_output)):
+                not_fitted[candidate] = "its simulation is not finite on the validation input"
                 continue
             extensions[candidate] = extended
             gains[candidate] = baseline_score.rms / max(rms_error(split.y_val, extended.validation_output), 1e-300)
@@ -193,6 +201,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
                                                                     float(np.max(split.v_est))))},
         steps=() if chain is None else chain.steps,
         chain_stopped=None if chain is None else chain.stopped,
+        not_fitted=tuple(not_fitted.items()) + (() if chain is None else chain.not_fitted),
     )
     return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions, chain)
 

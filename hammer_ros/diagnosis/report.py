@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .causes import EXTENSION, MEANING
-from .diagnose import DiagnosisRun
+from .diagnose import Diagnosis, DiagnosisRun
 from .residual_tests import simultaneous_level
 
 EXCERPT = 1500  # samples of the validation record drawn in the time plots
@@ -47,6 +47,7 @@ def render_report(run: DiagnosisRun, title: str = "hammer-ros diagnosis") -> str
              "<h2>Validation: measured vs simulated</h2>",
              "<p class='small'>Free-run simulations on the validation data (the models never saw it). "
              "Bottom: the simulation errors.</p>", _img(_validation_figure(run)), _numbers(run), _chain(run),
+             _not_fitted(run.diagnosis),
              "<h2>What the baseline gets wrong: the cause tests</h2>",
              "<p class='small'>Each cause leaves its own signature in the baseline's error; a test fails when "
              "the signature is significant (99 % level). Failing tests nominate causes; the extension of each "
@@ -93,6 +94,14 @@ def _chain(run: DiagnosisRun) -> str:
             "<table><tr><th>step</th><th>cause</th><th>structure</th><th>validation RMS</th>"
             f"<th>gain over the step before</th></tr>{body}</table>"
             f"<p class='small'>The chain stopped: {html.escape(d.chain_stopped or '')}.</p>")
+
+
+def _not_fitted(d: Diagnosis) -> str:
+    """The extensions tried in vain, each with its one-line reason."""
+    if not d.not_fitted:
+        return ""
+    items = "".join(f"<li>{html.escape(c)}: {html.escape(r)}</li>" for c, r in d.not_fitted)
+    return f"<p class='small'>Not fitted:</p><ul class='small'>{items}</ul>"
 
 
 def _numbers(run: DiagnosisRun) -> str:

@@ -462,21 +462,31 @@ class WienerHammersteinFit:
     split_costs: tuple[float, ...]
     rms: float  # simulation RMS on the estimation data (after the transient)
     segments: int
+    delay: int  # the BLA's relative degree, G1's first free numerator lag
 
 
 def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0,
                            segments: int | None = None, keep: int = KEEP_SPLITS, iterations: int = 200,
-                           scout_iterations: int = 15, full_order: bool = True) -> WienerHammersteinFit:
+                           scout_iterations: int = 15, full_order: bool = True,
+                           direct_term: bool = False) -> WienerHammersteinFit:
     """Wiener-Hammerstein model of total order ``order`` (the BLA's) on (u, y): BLA, scan of
     the pole/zero splits with the map by least squares, joint Levenberg-Marquardt refinement
     of the ``keep`` best splits (``scout_iterations`` each, both blocks of order ``order``),
-    then of the best one (up to ``iterations``). ``segments``: of the map (default from the
-    record's length, ``map_segments``). ``full_order`` False: each block keeps its split's order
-    (n poles in all, the structure of a Hammerstein model of order n; for comparisons of
-    structures), which stalls well above the full-order optimum on long records."""
+    then of the best one (up to ``iterations``). ``delay``: the BLA's relative degree and G1's
+    first free numerator lag (G1's lower coefficients keep the split's values; G2's numerator is
+    free from lag 0); ``direct_term``: also fit with ``delay`` 0 and keep the fit with the
+    smaller estimation RMS (the refinement from the split can stall in either). ``segments``: of
+    the map (default from the record's length, ``map_segments``). ``full_order`` False: each
+    block keeps its split's order (n poles in all, the structure of a Hammerstein model of order
+    n; for comparisons of structures), which stalls well above the full-order optimum on long
+    records."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     if order < 1:
         raise IdentificationError("a Wiener-Hammerstein model needs an order of at least 1")
+    if direct_term and delay > 0:
+        fits = [fit_wiener_hammerstein(u, y, order, d, segments, keep, iterations, scout_iterations, full_order)
+                for d in (delay, 0)]
+        return min(fits, key=lambda fit: fit.rms)
     bla = fit_output_error(u, y, order, delay)
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
@@ -521,4 +531,4 @@ def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, theta, y, skip, iterations)
     model = params.model(theta)
     rms = float(np.sqrt(cost / max(y.size - skip, 1)))
-    return WienerHammersteinFit(model, bla, tuple(s[0] for s in scored), rms, segments)
+    return WienerHammersteinFit(model, bla, tuple(s[0] for s in scored), rms, segments, delay)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
+import json
 import re
 import struct
 import sys
@@ -43,7 +44,8 @@ PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "in
 # msg_config keys that are not engine settings
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
               "response_field")
-OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap")
+OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap", "foxglove_port",
+              "foxglove_host")
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
 
 
@@ -649,6 +651,7 @@ class ResultWriter:
             raise UsageError(f"{option}: {self.path}: {exc.strerror}") from None
         self._writer = Writer(self._file)
         self._schemas: dict[str, Any] = {}
+        self._json_channels: dict[str, int] = {}
         self.count = 0
 
     def write(self, topic: str, type_name: str, message: dict, log_time_ns: int) -> None:
@@ -657,6 +660,18 @@ class ResultWriter:
             schema = self._schemas[type_name] = self._writer.register_msgdef(type_name,
                                                                              message_definition(type_name))
         self._writer.write_message(topic, schema, message, log_time=int(log_time_ns), publish_time=int(log_time_ns))
+        self.count += 1
+
+    def write_json(self, topic: str, schema_name: str, message: dict, log_time_ns: int) -> None:
+        """One JSON message (the Foxglove dashboard channels). The schema is named but carries no
+        JSON schema text (encoding ''): ROS 2 bag readers (rosbags) reject a 'jsonschema' schema and
+        would then not open the file at all; Foxglove reads the fields from the messages."""
+        mcap = self._writer._writer  # the mcap writer under mcap_ros2's (no public accessor)
+        channel = self._json_channels.get(topic)
+        if channel is None:
+            schema_id = mcap.register_schema(schema_name, "", b"")
+            channel = self._json_channels[topic] = mcap.register_channel(topic, "json", schema_id)
+        mcap.add_message(channel, int(log_time_ns), json.dumps(message, allow_nan=False).encode(), int(log_time_ns))
         self.count += 1
 
     def close(self) -> None:

@@ -228,6 +228,29 @@ def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) ->
 
 
 
+def window_problem(snapshot: EngineSnapshot) -> tuple[str, str, float, float]:
+    """(status, reason, condition number, input std) of the checks before a solve: status
+    ``filling`` (the window is not ``min_fill`` full) or ``not_exciting`` (the input is not
+    persistently exciting, absolutely or relative to the published models), '' when a solve can
+    be tried."""
+    cfg, v = snapshot.config, snapshot.v
+    needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
+    if v.size < needed or snapshot.weight <= 0:
+        return "filling", f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)", math.nan, math.nan
+    with np.errstate(all="ignore"):
+        cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
+    spread = float(np.std(v))
+    if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
+        return ("not_exciting", f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
+                cond, spread)
+    reference = snapshot.reference_std
+    if spread < cfg.min_excitation * reference:
+        return ("not_exciting", f"not persistently exciting (input std {spread:.3g} is "
+                f"{100 * spread / reference:.1f} % of the {reference:.3g} behind the published model, "
+                f"min_excitation {cfg.min_excitation:g})", cond, spread)
+    return "", "", cond, spread
+
+
 def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     """Identify the configured model on a snapshot (pure; may run in a worker thread).
 
@@ -238,27 +261,13 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     started = time.perf_counter()
     cfg, v, y = snapshot.config, snapshot.v, snapshot.y
 
-    spread = float("nan")
-
     def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok") -> SolveOutcome:
         return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp,
                             status, spread)
 
-    needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
-    if v.size < needed or snapshot.weight <= 0:
-        return outcome(False, f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)",
-                       status="filling")
-    with np.errstate(all="ignore"):
-        cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
-    spread = float(np.std(v))
-    if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
-        return outcome(False, f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
-                       cond=cond, status="not_exciting")
-    reference = snapshot.reference_std
-    if spread < cfg.min_excitation * reference:
-        return outcome(False, f"not persistently exciting (input std {spread:.3g} is {100 * spread / reference:.1f} % "
-                              f"of the {reference:.3g} behind the published model, min_excitation "
-                              f"{cfg.min_excitation:g})", cond=cond, status="not_exciting")
+    status, reason, cond, spread = window_problem(snapshot)
+    if status:
+        return outcome(False, reason, cond=cond, status=status)
     try:
         with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
             if cfg.method in CLS_STRUCTURES:

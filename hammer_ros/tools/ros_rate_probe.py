@@ -150,12 +150,61 @@ def _spin_until(executor, done, timeout: float) -> bool:
     return done()
 
 
-def _node(node, executor, env: dict, rate: float, seconds: float, batch: int) -> dict:
-    """Run a fresh hammer_ros node and read its received-sample counters from /diagnostics."""
+class _FoxgloveClient:
+    """A Foxglove WebSocket client (``websockets``) in a thread, subscribed to every channel of
+    the node's server, counting the messages it receives."""
+
+    def __init__(self, port: int) -> None:
+        import asyncio
+        import threading
+
+        self.port, self.messages, self._stop = port, 0, threading.Event()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+        self._thread.start()
+
+    async def _run(self) -> None:
+        import asyncio
+
+        import websockets
+
+        async with websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            while not self._stop.is_set():
+                try:
+                    frame = await asyncio.wait_for(ws.recv(), 0.1)
+                except asyncio.TimeoutError:
+                    continue
+                if isinstance(frame, bytes):
+                    self.messages += 1
+                elif (doc := json.loads(frame))["op"] == "advertise":
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                        {"id": c["id"], "channelId": c["id"]} for c in doc["channels"]]}))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, foxglove: bool = False) -> dict:
+    """Run a fresh hammer_ros node and read its received-sample counters from /diagnostics; with
+    ``foxglove`` its Foxglove server on and one client subscribed to every channel."""
     latest, sub = _diagnostics_counters(node)
-    ident = _start_node(env, [f"sample_rate:={rate * batch}", "solve_rate:=4.0", "window:=4000"], batch)
+    port = _free_port() if foxglove else 0
+    ident = _start_node(env, [f"sample_rate:={rate * batch}", "solve_rate:=4.0", "window:=4000",
+                              f"foxglove_port:={port}"], batch)
+    client = None
     try:
         _spin_until(executor, lambda: bool(latest), MATCH_TIMEOUT)  # up once it publishes diagnostics
+        if foxglove:
+            client = _FoxgloveClient(port)
+            _spin_until(executor, lambda: client.messages > 0, MATCH_TIMEOUT)  # connected and receiving
         publisher = _start_publisher(env, rate, seconds, batch)
         _spin_until(executor, lambda: publisher.poll() is not None, 120)
         sent = _finish(publisher)
@@ -163,11 +212,15 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
         _spin_until(executor, lambda: min(int(latest.get(k, 0)) for k in (
             "received_excitation", "received_response")) >= expected, SETTLE_SECONDS + 1.0)
     finally:
+        if client is not None:
+            client.close()
         ident.terminate()
         ident.communicate(timeout=10)
         node.destroy_subscription(sub)
     received = min(int(latest.get(k, 0)) for k in ("received_excitation", "received_response"))
-    return {"subscriber": "hammer_ros node", "received": received, "aligned": int(latest.get("aligned", 0)), **sent}
+    return {"subscriber": "hammer_ros node" + (" + foxglove client" if foxglove else ""), "received": received,
+            "aligned": int(latest.get("aligned", 0)), **sent,
+            **({"foxglove_messages": client.messages} if client is not None else {})}
 
 
 def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
@@ -227,8 +280,9 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
 
 
-def probe(rates: list[float], batch: int = 1, seconds: float = 4.0) -> list[dict]:
-    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate."""
+def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False) -> list[dict]:
+    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate;
+    with ``foxglove`` also the node with its Foxglove server on and one client connected."""
     prepare_ros_environment()
     rows = []
     with DomainLease() as lease:
@@ -244,8 +298,8 @@ def probe(rates: list[float], batch: int = 1, seconds: float = 4.0) -> list[dict
         executor.add_node(node)
         try:
             for rate in rates:
-                for measure in (_bare, _node):
-                    row = measure(node, executor, env, rate, seconds, batch)
+                for measure, options in ((_bare, {}), (_node, {}), *([(_node, {"foxglove": True})] * foxglove)):
+                    row = measure(node, executor, env, rate, seconds, batch, **options)
                     row.update(rate_msgs_per_s=rate, batch=batch, samples_per_s=rate * batch,
                                lost=row["messages"] * batch - row["received"])
                     rows.append(row)
@@ -262,6 +316,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rates", default="1000,2000,5000,10000", help="messages/s per topic, comma-separated")
     parser.add_argument("--batch", type=int, default=1, help="samples per message (1 = Float64)")
     parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument("--foxglove", action="store_true", help="also the node with its Foxglove server and a client")
     parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--plant", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -269,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.publish:
         prepare_ros_environment()
         return _publish(rates[0], args.seconds, args.batch, args.plant)
-    probe(rates, args.batch, args.seconds)
+    probe(rates, args.batch, args.seconds, args.foxglove)
     return 0
 
 

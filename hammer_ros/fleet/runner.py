@@ -1,0 +1,141 @@
+"""Running the fleet on Dask distributed: the client (a LocalCluster or an existing scheduler),
+one task per bag, the progress bar, checkpoints of ``fleet.parquet``, resume and Ctrl-C.
+
+Dask owns the scheduling and the faults of the cluster: a worker that dies (even by SIGKILL)
+loses no bag, the scheduler reruns its tasks elsewhere (a task whose workers died
+``distributed.scheduler.allowed-failures`` + 1 times becomes an error row). Tasks return only
+their row; the bags are opened by path on the workers (on a real cluster the paths, and the
+results directory, must be the same on every machine, e.g. a shared filesystem).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import UsageError
+from .sources import BagSource
+from .tasks import FleetSettings, run_bag
+
+SCHEDULER_TIMEOUT_S = 5.0
+CHECKPOINT_S = 30.0  # fleet.parquet is rewritten at least this often while the fleet runs
+
+
+@dataclass
+class FleetRun:
+    """The rows of one run (the resumed ones first) and whether Ctrl-C stopped it."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    interrupted: bool = False
+    missing: int = 0
+    wall_s: float = 0.0
+    workers: int = 0
+
+
+class FleetProgress:
+    """``fleet [#####     ] 12/24 bags  1 failed  ETA 0:00:14`` on stderr (redrawn at most 5 x/s)."""
+
+    def __init__(self, total: int, stream=None, enabled: bool = True) -> None:
+        self.total, self.stream, self.enabled = total, stream or sys.stderr, enabled
+        self.started, self.last, self.done, self.failed = time.monotonic(), 0.0, 0, 0
+
+    def update(self, done: int, failed: int, force: bool = False) -> None:
+        self.done, self.failed = done, failed
+        now = time.monotonic()
+        if not self.enabled or (not force and now - self.last < 0.2):
+            return
+        self.last = now
+        fraction = done / self.total if self.total else 1.0
+        elapsed = now - self.started
+        eta = elapsed * (self.total - done) / done if done else float("nan")
+        eta_text = time.strftime("%H:%M:%S", time.gmtime(eta)) if eta == eta else "--:--:--"
+        self.stream.write(f"\rfleet [{'#' * int(30 * fraction):<30}] {done}/{self.total} bags  {failed} failed  "
+                          f"ETA {eta_text} ")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.update(self.done, self.failed, force=True)
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def connect(scheduler: str | None, workers: int | None):
+    """(client, cluster): a client of the scheduler at ``scheduler`` (a UsageError if none answers
+    within SCHEDULER_TIMEOUT_S), else of a new LocalCluster of ``workers`` single-threaded processes."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        try:
+            client = Client(scheduler, timeout=f"{SCHEDULER_TIMEOUT_S}s")
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
+            reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise UsageError(f"--scheduler {scheduler}: no Dask scheduler answers ({reason})") from None
+        return client, None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                           silence_logs=logging.ERROR)
+    return Client(cluster), cluster
+
+
+def worker_count(client) -> int:
+    return len(client.scheduler_info(n_workers=-1).get("workers", {}))
+
+
+def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, done_rows: Sequence[dict] = (),
+              checkpoint: Callable[[list[dict]], None] | None = None, progress: FleetProgress | None = None,
+              task: Callable[[FleetSettings, BagSource], dict] = run_bag) -> FleetRun:
+    """Submit one task per bag in ``sources`` (minus those in ``done_rows``), gather the rows as
+    they finish; ``checkpoint(rows)`` every CHECKPOINT_S and at the end. Ctrl-C cancels what is
+    left and returns what finished (``interrupted``)."""
+    from distributed import as_completed
+
+    run = FleetRun(rows=list(done_rows), workers=worker_count(client))
+    done_paths = {row["path"] for row in done_rows}
+    todo = [s for s in sources if s.path not in done_paths]
+    started = last_checkpoint = time.perf_counter()
+    failed = sum(1 for row in done_rows if row.get("error"))
+    progress = progress or FleetProgress(len(sources), enabled=False)
+    progress.update(len(run.rows), failed, force=True)
+    futures = {}
+    try:
+        for i, source in enumerate(todo):
+            future = client.submit(task, settings, source, key=f"hammer-ros-fleet-{i}-{source.name}", pure=False)
+            futures[future.key] = (future, source)
+        for future in as_completed([f for f, _ in futures.values()]):
+            source = futures[future.key][1]
+            row = _row_of(future, source)
+            future.release()
+            run.rows.append(row)
+            failed += bool(row.get("error"))
+            progress.update(len(run.rows), failed)
+            if checkpoint and time.perf_counter() - last_checkpoint > CHECKPOINT_S:
+                checkpoint(run.rows)
+                last_checkpoint = time.perf_counter()
+    except KeyboardInterrupt:
+        run.interrupted = True
+        client.cancel([f for f, _ in futures.values() if not f.done()])
+    finally:
+        progress.close()
+    run.missing = len(sources) - len(run.rows)
+    run.wall_s = time.perf_counter() - started
+    if checkpoint:
+        checkpoint(run.rows)
+    return run
+
+
+def _row_of(future, source: BagSource) -> dict:
+    """The task's row, or an error row when Dask could not run it (e.g. KilledWorker)."""
+    if future.status == "finished":
+        return future.result()
+    try:
+        exc = future.exception()
+    except Exception as raised:  # cancelled, lost
+        exc = raised
+    reason = str(exc).strip().splitlines()[0] if exc is not None and str(exc).strip() else future.status
+    return {"path": source.path, "group": source.group, "labels": source.label_dict, "start": None, "end": None,
+            "model": None, "diagnosis": None, "out": None, "warnings": [],
+            "error": f"{source.path}: the task failed on the cluster ({type(exc).__name__}: {reason})", "seconds": None}

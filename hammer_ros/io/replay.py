@@ -1,0 +1,180 @@
+"""A bag through the streaming engine: the loop of ``hammer-ros replay`` and of every
+``hammer-ros fleet`` task (one function, so a fleet row is exactly what ``replay --json`` prints).
+
+``replay_bag`` reads the two streams, adds them to a ``StreamingEngine`` in vectorised batches,
+solves every 1 / solve_rate seconds of bag time and once at the end, and turns each solve into
+the node's output messages, written into an MCAP (``out``) and/or handed to a live publisher.
+It prints nothing; ``ReplayResult.document()`` is the ``replay --json`` document.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from ..errors import IdentificationError, UsageError
+from ..ros.dashboard import record_results
+from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
+from ..streaming.config import EngineConfig, EngineStats
+from ..streaming.engine import SolveOutcome, StreamingEngine
+from .bags import (
+    FLUSH_SAMPLES,
+    BagReadStats,
+    ResultWriter,
+    StreamSpec,
+    bag_files,
+    bag_message_counts,
+    check_fields,
+    check_topics,
+    iter_bag_samples,
+)
+
+NODE_NAME = "hammer_ros"
+
+
+class Publisher(Protocol):
+    def publish(self, topic: str, type_name: str, message: dict) -> None: ...
+
+
+class Stop(Protocol):
+    """Set ``signal`` (a signal number) to stop at the next message; ``sleep`` wakes on it."""
+
+    signal: int | None
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+@dataclass
+class ReplayResult:
+    """What one replay did: the last good and the last solve, counters, time."""
+
+    bag: str
+    last_ok: SolveOutcome | None
+    last: SolveOutcome | None
+    stats: EngineStats
+    read: BagReadStats
+    messages: int  # messages read
+    total: int  # messages of the two topics in the bag
+    wall_s: float
+    written: int  # messages written into ``out``
+    first_stamp: float  # bag time (s) of the first and last sample read (nan: none)
+    last_stamp: float
+    window: tuple[np.ndarray, np.ndarray] | None = None  # the final raw window (v, y), with keep_window
+
+    def document(self) -> dict:
+        """The ``replay --json`` document: the last good model's ``identify`` keys plus
+        ``samples``, ``solves`` and ``wall_s``; an IdentificationError without a model."""
+        if self.last_ok is None:
+            reason = self.last.reason if self.last else "no messages"
+            raise IdentificationError(f"{self.bag}: no model identified ({reason})")
+        doc = dict(self.last_ok.doc)
+        doc.update(samples=int(self.stats.aligned), solves=int(self.stats.solves), wall_s=round(self.wall_s, 4))
+        return doc
+
+
+def check_replay_input(bag: str | Path, excitation: StreamSpec, response: StreamSpec,
+                       out: str | Path | None = None) -> None:
+    """Every user mistake about the bag before any output: its topics, their fields, and an
+    ``out`` that would overwrite the bag (UsageError)."""
+    check_topics(bag, (excitation, response))
+    check_fields(bag, (excitation, response))
+    if out and any(Path(out).resolve() == f.resolve() for f in bag_files(bag)):
+        raise UsageError(f"--out: {out} is the bag being replayed (it would be overwritten)")
+
+
+def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, config: EngineConfig,
+               solve_rate: float, *, frame_id: str = "", out: str | Path | None = None,
+               publisher: Publisher | None = None, rate: float | None = None, stop: Stop | None = None,
+               progress: Callable[[int, int, int, bool], None] | None = None,
+               node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False) -> ReplayResult:
+    """Replay ``bag`` (checked by ``check_replay_input``) through a new engine.
+
+    ``out``: write every result message into this MCAP (with ``atomic``: under a temporary name,
+    renamed when complete, so that a reader never sees half a file); ``publisher`` with ``rate``:
+    pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
+    ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
+    ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads).
+    """
+    counts = bag_message_counts(bag)
+    total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
+    read = BagReadStats()
+    engine = StreamingEngine(config)
+    last_ok: SolveOutcome | None = None
+    last: SolveOutcome | None = None
+    target = (Path(out).with_name(f".{Path(out).stem}.partial.mcap") if atomic else Path(out)) if out else None
+    writer = ResultWriter(target) if target else None
+    done = 0
+    started = time.perf_counter()
+
+    def solve(bag_time: float) -> None:
+        nonlocal last_ok, last
+        engine.flush()
+        last = engine.solve()
+        last_ok = last if last.ok else last_ok
+        stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
+        messages = result_messages(last, stamp, frame_id)
+        if not last.ok and last_ok is not None:
+            messages.append(stale_model_message(last_ok, last))
+        diagnostics = diagnostics_message(engine.stats, last, stamp, node_name)
+        diagnostics["status"][0]["values"].extend(bag_values(read))
+        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+        if writer:  # first into the file (with the Foxglove dashboard channels): whatever is published is in it
+            record_results(writer, messages, stamp, node_name)
+        for topic, type_name, message in messages if publisher else ():
+            publisher.publish(topic, type_name, message)
+
+    bag_start = next_solve = None
+    bag_time = float("nan")
+    complete = False
+    try:
+        for sample in iter_bag_samples(bag, excitation, response, read):
+            if bag_start is None:
+                bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
+            if publisher and rate:  # pace: bag time / rate = wall time since the start
+                wait = (sample.stamp - bag_start) / rate - (time.perf_counter() - started)
+                if wait > 0.005:
+                    (stop.sleep if stop else time.sleep)(wait)
+            if stop is not None and stop.signal is not None:
+                break
+            if sample.stamp >= next_solve:
+                solve(sample.stamp)
+                next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
+            engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
+            if engine.buffered >= FLUSH_SAMPLES:
+                engine.flush()
+            bag_time = sample.stamp
+            done += 1
+            if progress:
+                progress(done, engine.stats.aligned, engine.stats.solves, False)
+        solve(bag_time)  # the final model, also after a signal
+        if progress:
+            progress(done, engine.stats.aligned, engine.stats.solves, True)
+        complete = True
+    finally:
+        if writer:
+            writer.close()
+            if atomic and complete:
+                os.replace(target, out)
+            elif atomic:
+                target.unlink(missing_ok=True)
+    first = float(bag_start) if bag_start is not None else float("nan")
+    window = None
+    if keep_window:
+        snapshot = engine.snapshot()
+        window = (snapshot.v, snapshot.y)
+    return ReplayResult(str(bag), last_ok, last, engine.stats, read, done, total, time.perf_counter() - started,
+                        writer.count if writer else 0, first, bag_time, window)
+
+
+def bag_values(read: BagReadStats) -> list[dict]:
+    """Diagnostics values of what reading the bag skipped so far."""
+    values = {"bag_damage": len(read.damage), "bag_oversized_messages": read.oversized,
+              "bag_undecodable_messages": read.undecodable, "bag_field_errors": sum(read.field_errors.values())}
+    return [{"key": k, "value": str(v)} for k, v in values.items()]

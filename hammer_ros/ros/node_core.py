@@ -1,0 +1,759 @@
+"""The live identification node's implementation (``IdentificationCore``), its parameters and
+their checks; ``node`` runs it unmanaged, ``managed_node`` as a lifecycle node.
+
+A thin adapter over ``streaming.StreamingEngine``: two subscriptions (sensor-data QoS) feed the
+excitation and response samples into the engine, a worker thread solves on a snapshot of the
+window ``solve_rate`` times a second and publishes the results built by ``outputs``. Ingestion
+never waits for a solve (a slow solve skips solves, never samples); parameters are validated and
+applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
+without a new model republishes the last good one marked stale. With ``output_mcap`` every
+published result is also recorded; on SIGINT/SIGTERM the node solves once more, records the
+final model and finishes the file.
+
+Stamps: a message with a non-zero ``header.stamp`` is placed by its stamp (a batch of n samples
+holds samples at stamp - (n-1)/fs .. stamp); any other message is placed by counting samples at
+the sample rate, anchored on the least delayed receive times (``sample_clock.ArrivalStamper``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+import threading
+import time
+from dataclasses import dataclass, fields, replace
+from importlib import import_module
+from typing import Any
+
+import numpy as np
+
+from .environment import prepare_ros_environment
+
+prepare_ros_environment()
+
+from rcl_interfaces.msg import (  # noqa: E402
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.event_handler import SubscriptionEventCallbacks  # noqa: E402
+from rclpy.exceptions import ParameterException, ParameterUninitializedException  # noqa: E402
+from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
+from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
+
+from ..errors import UsageError  # noqa: E402
+from ..identification.methods import METHODS  # noqa: E402
+from ..identification.result import strict_json  # noqa: E402
+from ..io.bags import ResultWriter  # noqa: E402
+from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
+from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
+from .cdr import raw_extractor  # noqa: E402
+from .dashboard import dashboard_messages, record_results  # noqa: E402
+from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
+from .outputs import (  # noqa: E402
+    OUTPUT_TOPICS,
+    diagnostics_message,
+    model_json,
+    result_messages,
+    stale_model_message,
+    to_ros_message,
+)
+from .outputs import _message_class as output_message_class  # noqa: E402
+from .sample_clock import ArrivalStamper  # noqa: E402
+from .services import NodeServices  # noqa: E402
+
+NODE_NAME = "hammer_ros"
+FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
+MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
+STREAMS = ("excitation", "response")
+STREAMING_METHODS = tuple(m for m in METHODS if m != "semiparametric")
+_TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One node parameter: default, kind (str/int/float/floats/bool), bounds and description."""
+
+    default: Any
+    kind: str
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = False
+
+
+PARAMETERS: dict[str, Spec] = {
+    "excitation_topic": Spec("/command", "str", "topic of the excitation (actuator command) u"),
+    "excitation_type": Spec("std_msgs/msg/Float64", "str",
+                            f"message type of excitation_topic (package one of {', '.join(MESSAGE_PACKAGES)})"),
+    "excitation_field": Spec("data", "str", "field path of u: data, data[0], velocity[2], twist.linear.x, data[:]"),
+    "response_topic": Spec("/response", "str", "topic of the response (sensor) y"),
+    "response_type": Spec("std_msgs/msg/Float64", "str", "message type of response_topic"),
+    "response_field": Spec("data", "str", "field path of y"),
+    "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e6),
+    "window": Spec(4000, "int", "W: samples in the sliding window", 16, MAX_WINDOW),
+    "forgetting": Spec(1.0, "float", "1 = exact sliding window; < 1 = exponential forgetting factor", 0.0, 1.0),
+    "method": Spec("cls-markov", "str", "identification method", choices=STREAMING_METHODS),
+    "order": Spec(3, "int", "order n of the linear block", 1, 50),
+    "delay": Spec(1, "int", "relative degree d (0..order)", 0, 50),
+    "mu": Spec(0, "int", "Markov parameters of mu-Markov methods; 0 = method default", 0, 10_000),
+    "tau_max": Spec(60, "int", "largest correlation lag (CLS)", 1, MAX_TAU_MAX),
+    "poly": Spec(3, "int", "polynomial order p of the nonlinearity", 1, 50),
+    "partition": Spec(None, "floats", "breakpoints c1 < c2 < ... of a piecewise-linear map (PLLS; cls-arx/"
+                      "cls-markov: F piecewise linear instead of the polynomial); empty = method default"),
+    "interpolation": Spec("zoh", "str", "resampling onto the grid", choices=("zoh", "linear")),
+    "max_gap": Spec(0.0, "float", "seconds without samples that restart the window; 0 = 5 sample periods", 0.0, 1e6),
+    "min_fill": Spec(0.25, "float", "fraction of the window needed before the first solve", 0.0, 1.0),
+    "min_excitation": Spec(0.1, "float", "input std needed, relative to the windows behind the published "
+                           "models (below: 'not persistently exciting', the last model stays, marked stale); 0 = off",
+                           0.0, 1.0),
+    "refine": Spec(False, "bool", "refine each solve's estimate on the simulation error of the window "
+                   "(identify --refine; slower solves, unbiased poles under output noise)"),
+    "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
+    "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
+                             "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
+    "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
+                             "grows faster than linearly: ~2 s for 10^4 samples)", 100, MAX_WINDOW),
+    "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
+    "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
+    "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
+                        "does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000, read_only=True),
+    "output_mcap": Spec("", "str", "record every published result in this MCAP file, finished on shutdown "
+                        "(SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
+    "foxglove_port": Spec(0, "int", "port of the in-process Foxglove WebSocket server of the dashboard channels; "
+                          "0 = off", 0, 65535, read_only=True),
+    "foxglove_host": Spec("127.0.0.1", "str", "address the Foxglove server listens on (loopback by default; "
+                          "0.0.0.0 = every interface)", read_only=True),
+}
+ENGINE_FIELDS = {f.name for f in fields(EngineConfig)} & set(PARAMETERS)
+STREAM_PARAMETERS = {f"{s}_{k}": s for s in STREAMS for k in ("topic", "type", "field")}
+DIAGNOSIS_TYPE = "std_msgs/msg/String"
+
+
+def message_class(type_name: str):
+    """The rclpy message class of 'pkg/msg/Name' (or 'pkg/Name') from an allowed package."""
+    match = _TYPE_NAME.match(type_name or "")
+    if not match:
+        raise UsageError(f"message type {type_name!r}: expected package/msg/Name, e.g. std_msgs/msg/Float64")
+    package, name = match.groups()
+    if package not in MESSAGE_PACKAGES:
+        raise UsageError(f"message type {type_name!r}: package {package!r} not supported "
+                         f"(use one of {', '.join(MESSAGE_PACKAGES)})")
+    try:
+        cls = getattr(import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        raise UsageError(f"message type {type_name!r}: no such message in {package}") from None
+    if not hasattr(cls, "get_fields_and_field_types"):
+        raise UsageError(f"message type {type_name!r}: not a message")
+    return cls
+
+
+def check_field(cls, path: FieldPath) -> None:
+    """Raise FieldError when ``path`` cannot exist in messages of ``cls``: checked on a default
+    message down to the first index (array lengths are only known at run time); a path without
+    an index must end at a number or a numeric array."""
+    value = cls()
+    for step in path.steps:
+        names = value.get_fields_and_field_types() if hasattr(value, "get_fields_and_field_types") else {}
+        if step.name not in names:
+            known = f" (fields: {', '.join(names)})" if names else ""
+            raise FieldError(f"field {path.text!r}: no field {step.name!r} in {type(value).__name__}{known}")
+        value = getattr(value, step.name)
+        if step.indices:
+            return
+    extract_samples(cls(), path)
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """A parameter value checked against its Spec (UsageError naming the parameter)."""
+    spec = PARAMETERS[name]
+    if spec.kind == "str":
+        if not isinstance(value, str):
+            raise UsageError(f"{name}: must be a string (got {value!r})")
+        if spec.choices and value not in spec.choices:
+            raise UsageError(f"{name}: {value!r} is not one of {', '.join(spec.choices)}")
+        return value
+    if spec.kind == "bool":
+        if not isinstance(value, bool):
+            raise UsageError(f"{name}: must be true or false (got {value!r})")
+        return value
+    if spec.kind == "floats":
+        if type(value).__name__ == "array":  # rclpy hands DOUBLE_ARRAY values over as array.array('d')
+            value = list(value)
+        if value is None or (isinstance(value, (list, tuple)) and len(value) == 0):
+            return None
+        if not isinstance(value, (list, tuple)) or not all(isinstance(x, (int, float)) for x in value):
+            raise UsageError(f"{name}: must be a list of numbers (got {value!r})")
+        return tuple(float(x) for x in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise UsageError(f"{name}: must be a number (got {value!r})")
+    if spec.kind == "int":
+        if value != int(value):
+            raise UsageError(f"{name}: must be an integer (got {value!r})")
+        value = int(value)
+    else:
+        value = float(value)
+    if (spec.low is not None and value < spec.low) or (spec.high is not None and value > spec.high):
+        raise UsageError(f"{name}: must be in [{spec.low:g}, {spec.high:g}] (got {value!r})")
+    return value
+
+
+def engine_config(values: dict[str, Any]) -> EngineConfig:
+    """The EngineConfig of a full set of coerced parameter values (validated)."""
+    changes = {k: values[k] for k in ENGINE_FIELDS}
+    changes["mu"] = changes["mu"] or None
+    return replace(EngineConfig(), **changes).validated()
+
+
+def _descriptor(name: str, spec: Spec) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=spec.description, read_only=spec.read_only,
+                            dynamic_typing=spec.kind in ("int", "float"))
+    if spec.choices:
+        d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if spec.kind == "int" and spec.low is not None:
+        d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high), step=0)]
+    elif spec.kind == "float" and spec.low is not None:
+        d.floating_point_range = [FloatingPointRange(from_value=spec.low, to_value=spec.high, step=0.0)]
+    return d
+
+
+class _Input:
+    """One input stream: its subscription, message type and field path."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.subscription = None
+        self.path: FieldPath | None = None
+        self.raw = None  # cdr.raw_extractor(type, path): samples and stamp from serialized messages
+        self.field_errors = 0
+        self.last_error = ""
+        self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
+        self.dds_lost = 0  # messages the middleware reports lost before the callback (message-lost event)
+        self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
+
+
+class IdentificationCore:
+    """The identification node's implementation, shared by the unmanaged ``IdentificationNode``
+    and the lifecycle ``managed_node.ManagedIdentificationNode`` (a mixin of an rclpy Node):
+    ``configure`` (parameters checked, engine, publishers, output_mcap, Foxglove server),
+    ``activate`` (subscriptions and worker threads), ``deactivate`` (ingestion stops, the last
+    model stays), ``close`` (final solve, output_mcap finished, everything released)."""
+
+    def _setup(self) -> None:
+        """Declare the parameters, the services and the state of an unconfigured node."""
+        for name, spec in PARAMETERS.items():
+            default = Parameter.Type.DOUBLE_ARRAY if spec.default is None else spec.default
+            try:
+                self.declare_parameter(name, default, _descriptor(name, spec))
+            except ParameterException as exc:  # an override outside the descriptor's range or type
+                raise UsageError(f"{name}: {' '.join(str(exc).split())}") from None
+        self._lock = threading.Lock()  # guards the engine and the stamper
+        self._pending_lock = threading.Lock()  # guards the queues filled by the callbacks
+        self._solve_lock = threading.Lock()  # one solve at a time (the solver thread, ~/solve)
+        self._diagnose_lock = threading.RLock()  # one diagnosis at a time (the diagnosis thread, ~/diagnose)
+        self._writer_lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._workers: list[threading.Thread] = []
+        self.engine: StreamingEngine | None = None
+        self.active = False
+        self.finalized = False  # a managed node after its shutdown transition: main() returns
+        self.server = None  # foxglove_server.DashboardServer when foxglove_port > 0
+        self._writer: ResultWriter | None = None
+        self._outputs: dict[str, Any] = {}
+        self.inputs = {s: _Input(s) for s in STREAMS}
+        self.last_outcome: SolveOutcome | None = None
+        self.skipped_solves = 0
+        self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.trigger_services = NodeServices(self)
+
+    def _create_output_publisher(self, cls, topic: str, qos):
+        return self.create_publisher(cls, topic, qos)
+
+    def _destroy_output_publisher(self, publisher) -> None:
+        self.destroy_publisher(publisher)
+
+    def configure(self) -> None:
+        """Check every parameter (UsageError naming the first bad one) and build the engine, the
+        publishers, the output_mcap writer and the Foxglove server."""
+        self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
+        config = engine_config(self.values)
+        for stream in STREAMS:  # fail fast on a bad configuration
+            self._check_stream(stream, self.values)
+        if self.values["foxglove_port"]:
+            from .foxglove_server import DashboardServer  # the SDK only when asked for
+
+            self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
+                                          self._warn_throttled)
+        self._pending: dict[str, list] = {s: [] for s in STREAMS}
+        self._pending_samples = 0
+        self.engine = StreamingEngine(config)
+        self.stamper = ArrivalStamper(self.values["sample_rate"])
+        self.unplaced = 0  # samples seen while the stamper still infers the rate
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        for topic, type_name in [*OUTPUT_TOPICS, ("~/diagnosis", DIAGNOSIS_TYPE)]:
+            qos = latched if topic in ("~/model", "~/diagnosis") else 10
+            self._outputs[topic] = self._create_output_publisher(output_message_class(type_name), topic, qos)
+        self._writer = ResultWriter(self.values["output_mcap"], "output_mcap") if self.values["output_mcap"] else None
+        serving = f"; Foxglove on ws://{self.values['foxglove_host']}:{self.server.port}" if self.server else ""
+        self.get_logger().info(
+            f"identifying {self.values['excitation_topic']}:{self.values['excitation_field']} -> "
+            f"{self.values['response_topic']}:{self.values['response_field']} with {self.values['method']} "
+            f"(order {self.values['order']}, delay {self.values['delay']}, window {self.values['window']}){serving}")
+
+    def activate(self) -> None:
+        """Subscribe to the inputs and start the ingest, solve and diagnosis threads."""
+        for stream in STREAMS:
+            self._subscribe(stream)
+        self._stop = stop = threading.Event()  # per activation: a thread still finishing a solve sees its own
+        self._workers = [threading.Thread(target=loop, args=(stop,), name=f"hammer_ros_{what}", daemon=True)
+                         for loop, what in ((self._ingest_loop, "ingest"), (self._solve_loop, "solver"),
+                                            (self._diagnosis_loop, "diagnosis"))]
+        self.active = True
+        for worker in self._workers:
+            worker.start()
+
+    def deactivate(self, publish: bool = True) -> None:
+        """Stop ingesting: unsubscribe, stop the threads (a running solve is waited for up to 1 s),
+        move the queued samples in; with ``publish`` the counters at this point on /diagnostics."""
+        self.active = False
+        for source in self.inputs.values():
+            if source.subscription is not None:
+                self.destroy_subscription(source.subscription)
+                source.subscription = None
+        self.stop()
+        self._guarded(self._flush, "ingesting")
+        if publish:
+            with self._lock:
+                stats = self.engine.stats.copy()
+            diagnostics = diagnostics_message(stats, self.last_outcome, self._now(), self.get_name())
+            self._add_node_diagnostics(diagnostics["status"][0])
+            self._outputs["/diagnostics"].publish(to_ros_message("diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+
+    def cleanup(self) -> None:
+        """Release what ``configure`` built (the last model is forgotten)."""
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        for publisher in self._outputs.values():
+            self._destroy_output_publisher(publisher)
+        self._outputs = {}
+        self.engine = None
+        self.last_outcome = None
+
+    def close(self) -> SolveOutcome | None:
+        """On shutdown: stop ingesting, solve once more, finish output_mcap, release everything;
+        returns the final outcome (None if there was none)."""
+        if self.active:
+            self.deactivate(publish=False)
+        outcome = None
+        if self.engine is not None:
+            outcome = self.finish()
+            self.cleanup()
+        self.trigger_services.close()
+        return outcome
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _warn_throttled(self, text: str) -> None:
+        self.get_logger().warning(text, throttle_duration_sec=5.0)
+
+    def _declared_value(self, name: str) -> Any:
+        try:
+            return self.get_parameter(name).value
+        except ParameterUninitializedException:  # a list parameter declared without a value
+            return None
+
+    # ------------------------------------------------------------------ inputs
+    def _subscribe(self, stream: str) -> None:
+        source = self.inputs[stream]
+        if source.subscription is not None:
+            self.destroy_subscription(source.subscription)
+        cls = message_class(self.values[f"{stream}_type"])
+        source.path = parse_field_path(self.values[f"{stream}_field"])
+        source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
+        qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
+                         durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
+        def on_lost(info, source=source) -> None:
+            source.dds_lost = info.total_count
+
+        source.subscription = self.create_subscription(
+            cls, self.values[f"{stream}_topic"], lambda msg, s=stream: self._on_message(s, msg), qos,
+            event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost), raw=source.raw is not None)
+
+    def _on_message(self, stream: str, msg) -> None:
+        """Subscription callback: extract the samples and queue them (no engine work here).
+        ``msg`` is the serialized message when the field is read from raw CDR."""
+        receive = time.time()
+        source = self.inputs[stream]
+        try:
+            if source.raw is not None:
+                values, stamp = source.raw(msg)
+            else:
+                values, stamp = extract_samples(msg, source.path), message_stamp(msg) or 0.0
+        except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
+            source.field_errors += 1
+            source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
+            self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
+            return
+        size = 1 if type(values) is float else values.size
+        item = (receive, stamp, values)  # stamp 0 = none or unset: place by counting
+        with self._pending_lock:
+            if self._pending_samples + size > self.values["max_pending"]:  # bounded: a flood is dropped
+                source.queue_dropped += 1
+                return
+            self._pending[stream].append(item)
+            self._pending_samples += size
+
+    def _flush(self) -> None:
+        """Move the queued samples into the engine: one vectorised add of both streams,
+        interleaved in time (``StreamingEngine.add_streams``)."""
+        with self._lock:
+            with self._pending_lock:
+                pending, self._pending = self._pending, {s: [] for s in STREAMS}
+                self._pending_samples = 0
+            batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
+            self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
+
+    def _stamped(self, stream: str, items: list[tuple[float, float, float | np.ndarray]]) -> tuple | None:
+        """(stamps, values) of one stream's queued messages (None when none could be placed).
+        Per message only its first stamp is found; the stamps of all samples are then made at
+        once, ``first + k / fs`` for the k-th sample of each message."""
+        firsts: list[float] = []
+        sizes: list[int] = []
+        values: list = []
+        explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
+        total = 0
+        for receive, stamp, x in items:
+            n = 1 if type(x) is float else x.size
+            if n == 0:
+                continue
+            if stamp and n == 1:
+                first = stamp
+            elif stamp:  # a stamped batch: the last sample at the stamp
+                t = self.engine.message_stamps(stream, stamp, n)
+                if t is None:
+                    self.engine.stats.unstamped += 1
+                    continue
+                explicit.append((total, t))
+                first = t[0]
+            else:
+                first = self.stamper.first_stamp(stream, receive, n)
+                if first is None:
+                    self.unplaced += n
+                    continue
+            firsts.append(first)
+            sizes.append(n)
+            values.append(x)
+            total += n
+        if not values:
+            return None
+        floats = [type(x) is float for x in values]
+        if all(floats):  # single samples
+            return np.array(firsts), np.array(values)
+        counts = np.array(sizes)
+        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message
+        # (fs is known whenever a batch was placed by counting; explicit stamps overwrite theirs)
+        stamps = np.repeat(np.array(firsts), counts) + offsets / (self.stamper.rate or 1.0)
+        for start, t in explicit:
+            stamps[start:start + t.size] = t
+        return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
+
+    def _ingest_loop(self, stop: threading.Event) -> None:
+        while not stop.wait(FLUSH_PERIOD):
+            self._guarded(self._flush, "ingesting")
+
+    def _guarded(self, step, what: str) -> None:
+        """Run one loop step; an unexpected exception is logged and counted, the loop goes on."""
+        try:
+            step()
+        except Exception as exc:  # the node never dies on a bug in one step
+            self.loop_errors += 1
+            self.get_logger().error(f"{what} failed ({type(exc).__name__}: {exc}); continuing",
+                                    throttle_duration_sec=5.0)
+
+    # ------------------------------------------------------------------ parameters
+    def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        try:
+            current = dict(self.values) if self.engine is not None else {
+                name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
+            proposed = dict(current)
+            for p in parameters:
+                if p.name not in PARAMETERS:
+                    continue
+                if PARAMETERS[p.name].read_only:
+                    raise UsageError(f"{p.name}: read-only (set it at startup)")
+                proposed[p.name] = _coerce(p.name, p.value)
+            config = engine_config(proposed)
+            changed = {k for k in PARAMETERS if proposed[k] != current[k]}
+            for stream in {STREAM_PARAMETERS[k] for k in changed & set(STREAM_PARAMETERS)}:
+                self._check_stream(stream, proposed)
+        except UsageError as exc:
+            self.get_logger().warning(f"parameter change rejected: {exc}")
+            return SetParametersResult(successful=False, reason=str(exc))
+        if self.engine is None:  # unconfigured (managed node): configure reads the parameters
+            return SetParametersResult(successful=True)
+        self.values = proposed
+        streams = {STREAM_PARAMETERS[k] for k in changed & set(STREAM_PARAMETERS)}
+        with self._lock:
+            if streams:  # a new signal: the window restarts
+                with self._pending_lock:
+                    self._pending = {s: [] for s in STREAMS}
+                self.engine = StreamingEngine(config)
+                self.stamper.set_rate(config.sample_rate)
+                for stream in streams if self.active else ():
+                    self._subscribe(stream)
+            else:
+                self.engine.reconfigure(**{k: getattr(config, k) for k in changed & ENGINE_FIELDS})
+                if "sample_rate" in changed:
+                    self.stamper.set_rate(config.sample_rate)
+        if changed:
+            self.get_logger().info("parameters applied: " + ", ".join(f"{k}={proposed[k]}" for k in sorted(changed)))
+        self._wake.set()
+        return SetParametersResult(successful=True)
+
+    def _check_stream(self, stream: str, values: dict[str, Any]) -> None:
+        topic = values[f"{stream}_topic"]
+        try:
+            validate_full_topic_name(expand_topic_name(topic, self.get_name(), self.get_namespace()))
+        except Exception as exc:  # rclpy raises several exception types for bad names
+            raise UsageError(f"{stream}_topic: invalid topic name {topic!r} ({str(exc).split(',')[0]})") from None
+        try:
+            cls = message_class(values[f"{stream}_type"])
+        except UsageError as exc:
+            raise UsageError(f"{stream}_type: {exc}") from None
+        try:
+            check_field(cls, parse_field_path(values[f"{stream}_field"]))
+        except UsageError as exc:
+            raise UsageError(f"{stream}_field: {exc}") from None
+
+    # ------------------------------------------------------------------ solving
+    def _solve_loop(self, stop: threading.Event) -> None:
+        deadline = time.monotonic()
+        while not stop.is_set():
+            period = 1.0 / self.values["solve_rate"]
+            deadline += period
+            now = time.monotonic()
+            if deadline < now:  # the last solve overran: skip the missed ticks
+                self.skipped_solves += int((now - deadline) / period) + 1
+                deadline = now + period
+            self._wake.wait(deadline - now)
+            if self._wake.is_set():
+                self._wake.clear()
+                deadline = time.monotonic()
+            if stop.is_set():
+                return
+            self._guarded(self._solve_once, "solving")
+
+    def _solve_once(self, publish: bool = True) -> SolveOutcome:
+        with self._solve_lock:
+            self._flush()
+            if publish:  # (not on shutdown: the graph is gone)
+                self._check_publisher_types()
+            with self._lock:
+                engine = self.engine
+                snapshot = engine.snapshot()
+            outcome = solve_snapshot(snapshot)  # never raises: a failing method gives ok False, status "exception"
+            if outcome.status == "exception":
+                self.get_logger().error(f"solve failed: {outcome.reason}", throttle_duration_sec=5.0)
+            with self._lock:
+                if engine is self.engine:
+                    engine.record(outcome)
+                stats = engine.stats.copy()
+            self._publish(outcome, stats, publish)
+            return outcome
+
+    def _diagnosis_loop(self, stop: threading.Event) -> None:
+        """Every ``diagnosis_period`` s: ``diagnose_record`` on the newest ``diagnosis_window``
+        samples of the raw window (estimation on their first 70 %, validation on the rest),
+        published as JSON on ~/diagnosis. The period is read every 0.5 s, so a live change
+        applies at once."""
+        last = time.monotonic()
+        while not stop.wait(0.5):
+            period = self.values["diagnosis_period"]
+            if period > 0 and time.monotonic() - last >= period:
+                last = time.monotonic()
+                with self._diagnose_lock:
+                    self._guarded(self._diagnose_once, "diagnosing")
+
+    def _diagnose_once(self, snapshot: EngineSnapshot | None = None) -> dict[str, Any]:
+        """Diagnose the newest ``diagnosis_window`` samples of the window (of ``snapshot``, else of
+        a new one), publish the JSON on ~/diagnosis and return it."""
+        from ..diagnosis.diagnose import diagnose_record  # imported on first use: matplotlib-free, but heavy
+
+        if snapshot is None:
+            with self._lock:
+                snapshot = self.engine.snapshot()
+        newest = self.values["diagnosis_window"]
+        v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+        started = time.perf_counter()
+        doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
+        try:
+            with np.errstate(all="ignore"):
+                doc |= diagnose_record(v, y, order=self.values["order"]).to_json()
+        except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
+            doc["error"] = f"window not diagnosable: {exc}"
+        doc["seconds"] = time.perf_counter() - started
+        values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
+        self._send([("~/diagnosis", DIAGNOSIS_TYPE, values)], self._now(), publish=self.active)
+        return doc
+
+    def _publish(self, outcome: SolveOutcome, stats, publish: bool = True) -> None:
+        """Publish (and record in output_mcap, first) the results of a solve; after a solve without
+        a model, the last good model again, marked stale."""
+        stamp = self._now()
+        messages = result_messages(outcome, stamp, self.values["frame_id"])
+        if outcome.ok:
+            self.last_outcome = outcome
+        elif self.last_outcome is not None:
+            messages.append(stale_model_message(self.last_outcome, outcome))
+        diagnostics = diagnostics_message(stats, outcome, stamp, self.get_name())
+        self._add_node_diagnostics(diagnostics["status"][0])
+        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+        self._send(messages, stamp, publish)
+
+    def _send(self, messages: list[tuple[str, str, dict]], stamp: float, publish: bool) -> None:
+        """Record ``messages`` and their dashboard channels in output_mcap, hand the dashboard
+        channels to the Foxglove server (never waits) and, with ``publish``, publish them."""
+        server = self.server
+        dashboard = dashboard_messages(messages, stamp) if server is not None or self._writer is not None else []
+        with self._writer_lock:
+            if self._writer is not None:
+                record_results(self._writer, messages, stamp, self.get_name(), dashboard)
+        if not publish:
+            return
+        if server is not None:
+            server.publish(dashboard, stamp)
+        try:
+            for topic, type_name, values in messages:
+                self._outputs[topic].publish(to_ros_message(type_name, values))
+        except Exception as exc:  # the context may be shutting down under us
+            if self.active:
+                self.get_logger().error(f"publishing failed: {exc}")
+
+    def _check_publisher_types(self) -> None:
+        """Note publishers of another message type on an input topic: DDS never delivers their
+        messages, so without this a wrong type would look like silence."""
+        for stream, source in self.inputs.items():
+            topic = expand_topic_name(self.values[f"{stream}_topic"], self.get_name(), self.get_namespace())
+            wanted = _normal_type(self.values[f"{stream}_type"])
+            others = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)
+                             if _normal_type(info.topic_type) != wanted})
+            expected = self.values[f"{stream}_type"]
+            source.wrong_type = (f"{stream}_topic {topic} has publishers of {', '.join(others)}, expected "
+                                 f"{expected}: their messages cannot be received") if others else ""
+
+    def finish(self) -> SolveOutcome | None:
+        """On shutdown: move the queued samples in, solve once more, record the final results in
+        output_mcap and finish that file; returns the final outcome (None if it failed)."""
+        outcome = None
+        try:
+            outcome = self._solve_once(publish=False)
+        except Exception as exc:  # still close the file
+            print(f"hammer_ros_node: final solve failed ({type(exc).__name__}: {exc})", file=sys.stderr)
+        with self._writer_lock:
+            if self._writer is not None:
+                try:
+                    self._writer.close()
+                    print(f"hammer_ros_node: {self._writer.count} messages in {self._writer.path}", file=sys.stderr)
+                except OSError as exc:  # e.g. the disk is full
+                    print(f"hammer_ros_node: error: output_mcap {self._writer.path}: {exc.strerror or exc}",
+                          file=sys.stderr)
+                self._writer = None
+        if self.last_outcome is not None:
+            stale = None if outcome is not None and outcome.ok else getattr(outcome, "reason", "final solve failed")
+            print(f"hammer_ros_node: final model: {model_json(self.last_outcome, stale)}", file=sys.stderr)
+        return outcome
+
+    def _add_node_diagnostics(self, status: dict) -> None:
+        values: dict[str, Any] = {
+            "ingesting": self.active,
+            "excitation_field_errors": self.inputs["excitation"].field_errors,
+            "response_field_errors": self.inputs["response"].field_errors,
+            "unplaced_samples": self.unplaced,
+            "clock_restarts": self.stamper.restarts,
+            "skipped_solves": self.skipped_solves,
+            "excitation_queue_dropped": self.inputs["excitation"].queue_dropped,
+            "response_queue_dropped": self.inputs["response"].queue_dropped,
+            "excitation_dds_lost": self.inputs["excitation"].dds_lost,
+            "response_dds_lost": self.inputs["response"].dds_lost,
+            "loop_errors": self.loop_errors,
+            "window": self.values["window"],
+            "method": self.values["method"],
+        }
+        if self.server is not None:
+            values.update(self.server.diagnostics(), foxglove_port=self.server.port)
+        status["values"].extend({"key": k, "value": str(v)} for k, v in values.items())
+        errors = [s.last_error for s in self.inputs.values() if s.field_errors]
+        errors += [s.wrong_type for s in self.inputs.values() if s.wrong_type]
+        if errors and status["level"] < 2:
+            status["level"] = 1
+        if errors:
+            status["message"] = f"{status['message']}; bad messages: {errors[0]}"
+
+    def stop(self) -> None:
+        """Stop the worker threads (waits for a running solve up to 1 s)."""
+        self._stop.set()
+        self._wake.set()
+        for worker in self._workers:
+            worker.join(timeout=1.0)
+        self._workers = []
+
+    # ------------------------------------------------------------------ services (NodeServices)
+    def _refusal(self) -> str:
+        return "" if self.active else "the node is not active (managed node: configure and activate it first)"
+
+    def reset_window(self) -> tuple[bool, str]:
+        """~/reset: clear the window and the correlation sums (and the counters); parameters stay."""
+        if self._refusal():
+            return False, self._refusal()
+        with self._solve_lock, self._lock:
+            with self._pending_lock:
+                self._pending = {s: [] for s in STREAMS}
+                self._pending_samples = 0
+            dropped = self.engine.snapshot().v.size
+            self.engine = StreamingEngine(self.engine.config)
+            self.stamper = ArrivalStamper(self.values["sample_rate"])
+            self.last_outcome = None
+        self.get_logger().info(f"window reset by ~/reset ({dropped} samples dropped)")
+        return True, f"window and correlation sums cleared ({dropped} samples dropped); parameters kept"
+
+    def solve_now(self) -> tuple[bool, str]:
+        """~/solve: solve and publish now; the model JSON, or why there is none."""
+        if self._refusal():
+            return False, self._refusal()
+        outcome = self._solve_once()
+        if not outcome.ok:
+            return False, f"no model: {outcome.reason}"
+        return True, model_json(outcome)
+
+    def diagnose_now(self) -> tuple[bool, str]:
+        """~/diagnose: diagnose the window now and publish it; the diagnosis JSON, or why not."""
+        if self._refusal():
+            return False, self._refusal()
+        with self._diagnose_lock:
+            self._flush()
+            with self._lock:
+                snapshot = self.engine.snapshot()
+            status, reason, _, _ = window_problem(snapshot)
+            if status:
+                return False, f"cannot diagnose: {reason}"
+            doc = self._diagnose_once(snapshot)
+        if "error" in doc:
+            return False, doc["error"]
+        return True, json.dumps(strict_json(doc), allow_nan=False)
+
+
+def _normal_type(name: str) -> str:
+    """'pkg/msg/Name' and 'pkg/Name' compare equal."""
+    parts = name.split("/")
+    return f"{parts[0]}/{parts[-1]}"

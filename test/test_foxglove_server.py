@@ -1,0 +1,228 @@
+"""The node's in-process Foxglove server (``foxglove_port``), tested with a WebSocket client
+that speaks the Foxglove protocol (``websockets``, subprotocol foxglove.sdk.v1) against a
+running node on a private graph: server info, channel advertisements, subscribed messages that
+match ~/model, loopback only, and misbehaving clients that never take the node down."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import struct
+import threading
+
+import pytest
+from ros_helpers import Listener, RosProcess
+
+from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
+from hammer_ros.ros.environment import DomainLease, child_environment
+
+pytestmark = pytest.mark.ros
+
+RATE = 250.0
+PLANT = {"rate": RATE, "seed": 5}
+NODE = {"sample_rate": RATE, "order": 3, "delay": 2, "window": 1000, "solve_rate": 4.0, "diagnosis_period": 0.0}
+SUBPROTOCOL = "foxglove.sdk.v1"
+FLOOD = 3000  # subscribe + unsubscribe pairs
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def listening_sockets(pid: int) -> list[tuple[str, int]]:
+    """(address, port) of every TCP socket in LISTEN state that process ``pid`` holds."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    found = []
+    for table, width in (("tcp", 8), ("tcp6", 32)):
+        with open(f"/proc/net/{table}") as rows:
+            for row in list(rows)[1:]:
+                fields = row.split()
+                if fields[3] == "0A" and fields[9] in inodes:  # 0A = LISTEN
+                    address, port = fields[1].split(":")
+                    if width == 8:
+                        address = socket.inet_ntoa(struct.pack("<I", int(address, 16)))
+                    found.append((address, int(port, 16)))
+    return found
+
+
+class FoxgloveClient:
+    """A Foxglove WebSocket client in a thread of its own (asyncio), recording what it receives."""
+
+    def __init__(self, port: int, subscribe: tuple[str, ...]) -> None:
+        self.port, self.wanted = port, subscribe
+        self.info: dict | None = None
+        self.channels: dict[str, dict] = {}
+        self.messages: dict[str, list[dict]] = {topic: [] for topic in subscribe}
+        self.statuses: list[dict] = []
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+        self._thread.start()
+
+    async def _run(self) -> None:
+        import websockets
+
+        try:
+            async with websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=[SUBPROTOCOL]) as ws:
+                by_subscription: dict[int, str] = {}
+                while not self._stop.is_set():
+                    try:
+                        frame = await asyncio.wait_for(ws.recv(), 0.1)
+                    except asyncio.TimeoutError:
+                        continue
+                    if isinstance(frame, bytes):  # opcode 1: message data
+                        assert frame[0] == 1
+                        subscription = struct.unpack_from("<I", frame, 1)[0]
+                        self.messages[by_subscription[subscription]].append(json.loads(frame[13:]))
+                        continue
+                    doc = json.loads(frame)
+                    if doc["op"] == "serverInfo":
+                        self.info = doc
+                    elif doc["op"] == "advertise":
+                        self.channels.update({c["topic"]: c for c in doc["channels"]})
+                        subscriptions = []
+                        for k, topic in enumerate(self.wanted, start=1):
+                            if topic in self.channels and topic not in by_subscription.values():
+                                by_subscription[k] = topic
+                                subscriptions.append({"id": k, "channelId": self.channels[topic]["id"]})
+                        if subscriptions:
+                            await ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+                    elif doc["op"] == "status":
+                        self.statuses.append(doc)
+        except BaseException as exc:  # reported by the test
+            self.error = exc
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+
+async def _misbehave(port: int) -> None:
+    """Malformed frames, a subscribe flood and a disconnect in the middle of a frame."""
+    import websockets
+
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
+        await ws.recv()  # serverInfo
+        channels = json.loads(await ws.recv())["channels"]
+        model = next(c["id"] for c in channels if c["topic"] == dashboard_topic("model"))
+        for frame in ("not json", '{"op": "no such op"}', '{"op": "subscribe"}', b"\x99\x00\x01", b"",
+                      json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": 999999}]})):
+            await ws.send(frame)
+        for k in range(FLOOD):
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 100 + k, "channelId": model}]}))
+            await ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": [100 + k]}))
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": model}]}))
+        await ws.recv()  # the server still answers this client
+    # a raw client that upgrades, starts a frame of 1000 bytes and disconnects after 10
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 f"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+                 f"Sec-WebSocket-Protocol: {SUBPROTOCOL}\r\n\r\n".encode())
+    await writer.drain()
+    assert b"101" in await reader.readuntil(b"\r\n")
+    writer.write(bytes([0x81, 0xFE]) + struct.pack(">H", 1000) + b"\x00\x00\x00\x00" + b"{" * 10)  # masked text
+    await writer.drain()
+    writer.close()
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    logs = tmp_path_factory.mktemp("foxglove")
+    port = free_port()
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
+        plant = RosProcess("hammer_ros.ros.plant_node", PLANT, env, logs / "plant.log")
+        node = RosProcess("hammer_ros.ros.node", {**NODE, "foxglove_port": port}, env, logs / "node.log")
+        listener = Listener(env)
+        try:
+            listener.port, listener.process = port, node
+            listener.models = listener.subscribe_json("/hammer_ros/model", latched=False)
+            listener.diagnostics = listener.subscribe_diagnostics()
+            listener.wait_for(lambda: listener.models, what="a model on ~/model")
+            yield listener
+        finally:
+            listener.close()
+            codes = (node.stop(signal.SIGINT), plant.stop(signal.SIGINT))
+            assert codes == (0, 0), node.output()[-3000:]
+
+
+def test_a_foxglove_client_gets_the_channels_and_the_model(rig):
+    model_topic, poles_topic = dashboard_topic("model"), dashboard_topic("poles")
+    client = FoxgloveClient(rig.port, (model_topic, poles_topic))
+    try:
+        rig.wait_for(lambda: client.error or (client.messages[model_topic] and client.messages[poles_topic]),
+                     what="model and poles from the Foxglove server")
+        assert client.error is None
+        assert client.info["name"] == "hammer_ros"
+        assert set(client.channels) == {dashboard_topic(name) for name in CHANNELS}
+        model = client.channels[model_topic]
+        assert (model["encoding"], model["schemaEncoding"], model["schemaName"]) == ("json", "jsonschema",
+                                                                                   "hammer_ros.Model")
+        assert json.loads(model["schema"])["properties"]["poles"] == {"type": "array"}
+        assert client.channels[dashboard_topic("diagnosis_log")]["schemaName"] == "foxglove.Log"
+
+        def matching():  # a Foxglove model equal to a ~/model message (the same solve)
+            ros = {m["stamp"]: m for m in rig.models}
+            return [(m, ros[m["stamp"]]) for m in client.messages[model_topic] if m["stamp"] in ros]
+
+        foxglove_model, ros_model = rig.wait_for(matching, what="a Foxglove model that is on ~/model too")[-1]
+        assert {k: v for k, v in foxglove_model.items() if k != "timestamp"} == ros_model
+        poles = client.messages[poles_topic][-1]
+        assert len(poles["real"]) == len(poles["imag"]) == NODE["order"]
+        assert [p["x"] for p in poles["points"]] == poles["real"] and len(poles["unit_circle"]) > 60
+    finally:
+        client.close()
+
+
+def test_the_server_listens_on_loopback_only(rig):
+    assert listening_sockets(rig.process.process.pid) == [("127.0.0.1", rig.port)]
+
+
+def test_misbehaving_clients_never_take_the_node_down(rig):
+    asyncio.run(asyncio.wait_for(_misbehave(rig.port), 120))
+
+    def counted():
+        d = rig.diagnostics[-1] if rig.diagnostics else {}
+        return (int(d.get("foxglove_invalid_frames", 0)) >= 3 and int(d.get("foxglove_client_errors", 0)) >= 1
+                and int(d.get("foxglove_subscribe_requests", 0)) >= FLOOD
+                and int(d.get("foxglove_disconnections", 0)) >= 2 and d)
+
+    status = rig.wait_for(counted, what="the misbehaviour counted in /diagnostics")
+    assert int(status["foxglove_subscriptions"]) == 0  # every client gone
+    assert rig.process.process.poll() is None
+    seen = len(rig.models)
+    rig.wait_for(lambda: len(rig.models) > seen, what="models after the misbehaving clients")
+    client = FoxgloveClient(rig.port, (dashboard_topic("model"),))  # and it still serves
+    try:
+        rig.wait_for(lambda: client.error or client.messages[dashboard_topic("model")], what="a model for a new client")
+        assert client.error is None
+    finally:
+        client.close()
+
+
+def test_with_foxglove_port_0_nothing_listens(tmp_path):
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id, log_dir=tmp_path / "ros_log")
+        node = RosProcess("hammer_ros.ros.node", {"diagnosis_period": 0.0}, env, tmp_path / "node.log")
+        listener = Listener(env)
+        try:
+            diagnostics = listener.subscribe_diagnostics()
+            listener.wait_for(lambda: diagnostics, what="the node's diagnostics")  # configured and solving
+            assert "foxglove_port" not in diagnostics[-1]
+            assert listening_sockets(node.process.pid) == []
+        finally:
+            listener.close()
+            code = node.stop(signal.SIGINT)
+        assert code == 0, node.output()[-3000:]

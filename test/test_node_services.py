@@ -1,0 +1,118 @@
+"""The node's services ~/reset, ~/solve and ~/diagnose (std_srvs/srv/Trigger) on a running node
+fed by the test (``stamped_plant``), so the window's content is known at every call. The tests
+run in order on the same node."""
+
+from __future__ import annotations
+
+import json
+import signal
+
+import pytest
+from ros_helpers import Listener, RosProcess
+from stamped_plant import NODE, WINDOW, Observer, StampedPlant, pole_error
+
+from hammer_ros.ros.environment import DomainLease, child_environment
+
+pytestmark = pytest.mark.ros
+
+SERVICE_NODE = {**NODE, "solve_rate": 0.01, "diagnosis_period": 0.0, "diagnosis_window": WINDOW}
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    logs = tmp_path_factory.mktemp("services")
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
+        node = RosProcess("hammer_ros.ros.node", SERVICE_NODE, env, logs / "node.log")
+        listener = Listener(env)
+        try:
+            listener.observer = Observer(listener)
+            listener.diagnoses = listener.subscribe_json("/hammer_ros/diagnosis")
+            listener.plant = StampedPlant(listener)
+            listener.process = node
+            yield listener
+        finally:
+            listener.close()
+            code = node.stop(signal.SIGINT)
+            assert code == 0, node.output()[-3000:]
+
+
+def call(rig, service: str):
+    """(success, message) of a Trigger call of /hammer_ros/<service>."""
+    from std_srvs.srv import Trigger
+
+    client = getattr(rig, f"client_{service}", None)
+    if client is None:
+        client = rig.node.create_client(Trigger, f"/hammer_ros/{service}")
+        setattr(rig, f"client_{service}", client)
+    rig.wait_for(client.service_is_ready, what=f"the service /hammer_ros/{service}")
+    response = rig.wait_future(client.call_async(Trigger.Request()), what=f"the reply of /hammer_ros/{service}")
+    return response.success, response.message
+
+
+def call_until(rig, service: str, accept, what: str):
+    """Call ``service`` until ``accept(success, message)`` (the samples sent are on their way)."""
+    last = None
+
+    def accepted():
+        nonlocal last
+        last = call(rig, service)
+        return accept(*last)
+
+    try:
+        rig.wait_for(accepted, what=what)
+    except AssertionError:
+        raise AssertionError(f"{what}; last reply {last}") from None
+    return last
+
+
+def test_solve_and_diagnose_refuse_while_the_window_fills(rig):
+    rig.plant.send(100)  # a twentieth of the window; the node needs a quarter
+    ok, message = call(rig, "solve")
+    assert not ok and "full (need 500 samples)" in message
+    ok, message = call(rig, "diagnose")
+    assert not ok and message.startswith("cannot diagnose: window") and "full" in message
+    assert rig.process.process.poll() is None
+
+
+def test_solve_replies_with_the_model_json_and_publishes_it(rig):
+    t = rig.plant.send(WINDOW + 500)
+    _, message = call_until(rig, "solve", lambda ok, m: ok and json.loads(m)["stamp"] == pytest.approx(t[-1]),
+                            what="a model of the whole window from ~/solve")
+    model = json.loads(message)
+    assert model["samples"] == WINDOW and not model["stale"]
+    assert pole_error(model) < 0.05
+    assert {"poles", "zeros", "a", "b", "nonlinearity", "fit_percent"} <= set(model)
+    rig.wait_for(lambda: rig.observer.models and rig.observer.models[-1] == model, what="the same model on ~/model")
+
+
+def test_diagnose_replies_with_the_diagnosis_json_and_publishes_it(rig):
+    ok, message = call(rig, "diagnose")
+    assert ok, message
+    doc = json.loads(message)
+    assert doc["samples"] == WINDOW and doc["cause"] == "none"  # a clean Hammerstein system
+    assert {"baseline", "confidence", "evidence", "seconds"} <= set(doc)
+    rig.wait_for(lambda: rig.diagnoses and rig.diagnoses[-1] == doc, what="the same diagnosis on ~/diagnosis")
+
+
+def test_solve_and_diagnose_refuse_a_window_that_is_not_exciting(rig):
+    rig.plant.send(WINDOW, constant=0.2)  # standing still for a whole window
+    _, message = call_until(rig, "solve", lambda ok, m: not ok and "not persistently exciting" in m,
+                            what="~/solve refusing a constant input")
+    assert message.startswith("no model: not persistently exciting")
+    ok, message = call(rig, "diagnose")
+    assert not ok and message.startswith("cannot diagnose: not persistently exciting")
+
+
+def test_reset_clears_the_window_and_keeps_the_parameters(rig):
+    ok, message = call(rig, "reset")
+    assert ok and f"({WINDOW} samples dropped)" in message and "parameters kept" in message
+    ok, message = call(rig, "solve")
+    assert not ok and "window 0 % full" in message
+    t = rig.plant.send(WINDOW)
+    _, message = call_until(rig, "solve", lambda ok, m: ok and json.loads(m)["stamp"] == pytest.approx(t[-1]),
+                            what="a model of the new window after ~/reset")
+    model = json.loads(message)
+    assert model["samples"] == WINDOW and model["order"] == NODE["order"]  # the parameters stayed
+    assert pole_error(model) < 0.05
+    assert rig.process.process.poll() is None
