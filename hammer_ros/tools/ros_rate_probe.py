@@ -163,11 +163,24 @@ class _FoxgloveClient:
         self._thread.start()
 
     async def _run(self) -> None:
+        """Connect (retrying while the node's server is not listening yet), subscribe to every
+        advertised channel and count the messages until ``close``."""
         import asyncio
 
         import websockets
 
-        async with websockets.connect(f"ws://127.0.0.1:{self.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+        while not self._stop.is_set():
+            try:
+                await self._receive(websockets.connect(f"ws://127.0.0.1:{self.port}",
+                                                       subprotocols=["foxglove.sdk.v1"]))
+                return
+            except OSError:  # refused: the server is not up yet
+                await asyncio.sleep(0.1)
+
+    async def _receive(self, connection) -> None:
+        import asyncio
+
+        async with connection as ws:
             while not self._stop.is_set():
                 try:
                     frame = await asyncio.wait_for(ws.recv(), 0.1)
