@@ -22,6 +22,14 @@ from .sources import BagSource
 from .tasks import FleetSettings, run_bag
 
 SCHEDULER_TIMEOUT_S = 5.0
+# A LocalCluster shares the machine's cores with its scheduler (in this process) and its workers' own
+# threads: the statistical profiler samples every task's stack 100 x/s and the monitors poll psutil
+# every 0.5 s, for a dashboard that is off; profiler off, monitors every 5 s.
+QUIET_CLUSTER = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.system-monitor.interval": "5s",
+    "distributed.worker.memory.monitor-interval": "5s",
+}
 CHECKPOINT_S = 30.0  # fleet.parquet is rewritten at least this often while the fleet runs
 
 
@@ -77,8 +85,7 @@ def connect(scheduler: str | None, workers: int | None):
             reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise UsageError(f"--scheduler {scheduler}: no Dask scheduler answers ({reason})") from None
         return client, None
-    # the workers' statistical profiler samples every task's stack 100 x/s: 5-8 % of a small bag's time here
-    with dask.config.set({"distributed.worker.profile.enabled": False}):
+    with dask.config.set(QUIET_CLUSTER):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
                                silence_logs=logging.ERROR)
     return Client(cluster), cluster
