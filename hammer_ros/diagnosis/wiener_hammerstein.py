@@ -361,6 +361,15 @@ def _partition(x: np.ndarray, segments: int) -> np.ndarray:
     return drop_empty_intervals(x, knots)
 
 
+def _map_start(x: np.ndarray, y: np.ndarray, back: LinearModel, segments: int,
+               skip: int) -> tuple[np.ndarray, int, np.ndarray, float, float]:
+    """(partition, primary, slopes, kappa, cost): the map on ``segments`` quantile intervals of
+    x, fitted by least squares through ``back`` (``_map_fit``)."""
+    partition = _partition(x, segments)
+    primary = max(1, partition.size // 2)
+    return (partition, primary, *_map_fit(x, y, back, partition, primary, skip))
+
+
 def _map_fit(x: np.ndarray, y: np.ndarray, back: LinearModel, partition: np.ndarray, primary: int,
              skip: int) -> tuple[np.ndarray, float, float]:
     """(slopes, kappa, cost): y ~ G2[eta(x)] mu + G2(1) kappa by least squares."""
@@ -502,11 +511,9 @@ def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
         front = front.scaled(scale)
         x = x * scale
         try:
-            partition = _partition(x, segments)
+            *_, cost = _map_start(x, y_scan, back, segments, scan_skip)
         except IdentificationError:
             continue
-        primary = max(1, partition.size // 2)
-        mu, kappa, cost = _map_fit(x, y_scan, back, partition, primary, scan_skip)
         scored.append((cost, front, back))
     if not scored:
         raise IdentificationError("no split of the best linear approximation could be fitted")
@@ -515,11 +522,9 @@ def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     for _, front, back in scored[:keep]:
         x = _filter(front.b, front.a, u)
         try:
-            partition = _partition(x, segments)
+            partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip)
         except IdentificationError:
             continue
-        primary = max(1, partition.size // 2)
-        mu, kappa, _ = _map_fit(x, y, back, partition, primary, skip)
         params = _Parameters(front, back, order, delay, partition, primary, full_order)
         theta, cost = _levenberg_marquardt(params.evaluator(u), params.project,
                                            params.pack(front, back, mu, kappa), y, skip, scout_iterations)
@@ -545,9 +550,7 @@ def fit_nested_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
     identity = LinearModel(np.ones(1), np.ones(1))
-    partition = _partition(u, segments)
-    primary = max(1, partition.size // 2)
-    mu, kappa, _ = _map_fit(u, y, bla, partition, primary, skip)
+    partition, primary, mu, kappa, _ = _map_start(u, y, bla, segments, skip)
     params = _Parameters(identity, bla, order, delay, partition, primary, full_order=False)
     theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, params.pack(identity, bla, mu, kappa), y,
                                        skip, iterations)
