@@ -176,11 +176,14 @@ def test_scheduler_and_two_workers_give_23_models_one_error_and_the_changes(flee
             "diagnosis_cause", "diagnosis_gain", "error", *QUANTITIES} <= set(columns)
 
 
-def test_local_cluster_gives_the_same_table_and_prints_the_changes(fleet, scheduler_run):
+def test_local_cluster_in_batches_gives_the_same_table_and_prints_the_changes(fleet, scheduler_run):
+    """A LocalCluster with 5 bags per task (the scheduler run had one per task; the damaged bag
+    shares its task with healthy ones) gives the same rows."""
     root, bags = fleet
     out = scheduler_run[1]
     local = root / "local"
-    done = run_cli("fleet", str(root / "bags"), "--config", CONFIG, "--workers", "2", "--out", str(local))
+    done = run_cli("fleet", str(root / "bags"), "--config", CONFIG, "--workers", "2", "--batch", "5", "--out",
+                   str(local))
     assert done.returncode == 0, done.stderr[-3000:]
     remote_rows = by_path(read_rows(out / "fleet.parquet")[0])
     local_rows = by_path(read_rows(local / "fleet.parquet")[0])
@@ -328,6 +331,7 @@ def test_the_html_page_renders_in_headless_chromium(scheduler_run, tmp_path):
     ("no topic", "'/nope'"),
     ("no bags", "no bags in this directory"),
     ("both cluster options", "--scheduler and --workers"),
+    ("batch of zero bags", "--batch: must be >= 1"),
 ])
 def test_bad_input_is_one_line_and_exit_2(fleet, tmp_path, capsys, case, fragment):
     from hammer_ros.cli import main
@@ -349,6 +353,8 @@ def test_bad_input_is_one_line_and_exit_2(fleet, tmp_path, capsys, case, fragmen
     elif case == "no bags":
         (tmp_path / "empty").mkdir()
         argv = [str(tmp_path / "empty"), "--config", CONFIG]
+    elif case == "batch of zero bags":
+        argv += ["--batch", "0"]
     else:
         argv += ["--scheduler", "tcp://127.0.0.1:1", "--workers", "2"]
     assert main(["fleet", *argv, "--out", str(tmp_path / "out")]) == 2
@@ -367,3 +373,13 @@ def test_a_scheduler_that_does_not_answer_is_exit_2_before_any_work(fleet, tmp_p
     assert len(lines) == 1 and address in lines[0] and "Traceback" not in done.stderr, done.stderr
     assert time.monotonic() - started < 60
     assert not (tmp_path / "fleet.parquet").exists()
+
+
+def test_batch_size_keeps_small_fleets_one_bag_per_task_and_caps_large_ones():
+    from hammer_ros.fleet.runner import MAX_BATCH, batch_size
+
+    assert batch_size(24, 2) == 1  # the fleets of these tests: one bag per task
+    assert batch_size(200, 2) == MAX_BATCH  # the bench: 25 tasks of 8 bags
+    assert batch_size(40, 2) == 2  # each worker still gets >= 8 tasks
+    assert batch_size(10_000, 32) == MAX_BATCH
+    assert batch_size(0, 0) == 1

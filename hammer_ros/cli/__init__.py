@@ -125,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--diagnose", action="store_true", help="also diagnose each bag's final window")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS", help="an existing Dask scheduler (tcp://host:8786)")
     p.add_argument("--workers", type=int, default=None, help="processes of the local cluster (default: cores)")
+    p.add_argument("--batch", type=int, default=None, metavar="N",
+                   help="bags per Dask task (default: 1 for small fleets, up to 8 when each worker still gets 8 tasks)")
     p.add_argument("--out", default=None, metavar="DIR", help="fleet.parquet, fleet.html and each bag's results MCAP")
     p.add_argument("--resume", action="store_true", help="skip the bags already in DIR/fleet.parquet")
     p.add_argument("--json", action="store_true")

@@ -33,6 +33,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--scheduler and --workers: give one (--workers starts a local cluster)")
     if args.workers is not None and args.workers < 1:
         raise UsageError(f"--workers: must be >= 1 (got {args.workers})")
+    if args.batch is not None and args.batch < 1:
+        raise UsageError(f"--batch: must be >= 1 (got {args.batch})")
     if args.bags and args.manifest:
         raise UsageError("BAGS and --manifest: give one")
     params = load_msg_config(args.config) if args.config else {}
@@ -67,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     client, cluster = connect(args.scheduler, args.workers if args.workers is not None else os.cpu_count() or 1)
     try:
         progress = FleetProgress(len(sources))
-        run = run_fleet(client, sources, settings, done_rows, progress=progress,
+        run = run_fleet(client, sources, settings, done_rows, progress=progress, batch=args.batch,
                         checkpoint=lambda rows: write_parquet(rows, parquet, settings.fingerprint(),
                                                               config.sample_rate))
     finally:

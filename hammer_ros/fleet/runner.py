@@ -1,5 +1,5 @@
 """Running the fleet on Dask distributed: the client (a LocalCluster or an existing scheduler),
-one task per bag, the progress bar, checkpoints of ``fleet.parquet``, resume and Ctrl-C.
+tasks of a few bags each, the progress bar, checkpoints of ``fleet.parquet``, resume and Ctrl-C.
 
 Dask owns the scheduling and the faults of the cluster: a worker that dies (even by SIGKILL)
 loses no bag, the scheduler reruns its tasks elsewhere (a task whose workers died
@@ -31,6 +31,8 @@ QUIET_CLUSTER = {
     "distributed.worker.memory.monitor-interval": "5s",
 }
 CHECKPOINT_S = 30.0  # fleet.parquet is rewritten at least this often while the fleet runs
+MAX_BATCH = 8  # bags per task at most
+BATCHES_PER_WORKER = 8  # tasks per worker at least, when the fleet is large enough to batch
 
 
 @dataclass
@@ -95,32 +97,48 @@ def worker_count(client) -> int:
     return len(client.scheduler_info(n_workers=-1).get("workers", {}))
 
 
+def batch_size(bags: int, workers: int) -> int:
+    """Bags per task: one while the fleet is small, then enough that each worker still gets at
+    least BATCHES_PER_WORKER tasks (the last ones balance the load), at most MAX_BATCH (a lost
+    worker reruns at most that many bags). Fewer, longer tasks take scheduler and worker event-loop
+    work off the cores the bags need."""
+    return int(max(1, min(MAX_BATCH, bags // (max(workers, 1) * BATCHES_PER_WORKER))))
+
+
+def run_batch(task: Callable[[FleetSettings, BagSource], dict], settings: FleetSettings,
+              batch: Sequence[BagSource]) -> list[dict]:
+    """The rows of the bags of one task, in order (runs on a worker)."""
+    return [task(settings, source) for source in batch]
+
+
 def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, done_rows: Sequence[dict] = (),
               checkpoint: Callable[[list[dict]], None] | None = None, progress: FleetProgress | None = None,
-              task: Callable[[FleetSettings, BagSource], dict] = run_bag) -> FleetRun:
-    """Submit one task per bag in ``sources`` (minus those in ``done_rows``), gather the rows as
-    they finish; ``checkpoint(rows)`` every CHECKPOINT_S and at the end. Ctrl-C cancels what is
-    left and returns what finished (``interrupted``)."""
+              task: Callable[[FleetSettings, BagSource], dict] = run_bag, batch: int | None = None) -> FleetRun:
+    """Submit the bags in ``sources`` (minus those in ``done_rows``) in tasks of ``batch`` bags
+    (default ``batch_size``), gather the rows as they finish; ``checkpoint(rows)`` every CHECKPOINT_S and at the end.
+    Ctrl-C cancels what is left and returns what finished (``interrupted``)."""
     from distributed import as_completed
 
     run = FleetRun(rows=list(done_rows), workers=worker_count(client))
     done_paths = {row["path"] for row in done_rows}
     todo = [s for s in sources if s.path not in done_paths]
+    size = batch or batch_size(len(todo), run.workers)
+    batches = [todo[i : i + size] for i in range(0, len(todo), size)]
     started = last_checkpoint = time.perf_counter()
     failed = sum(1 for row in done_rows if row.get("error"))
     progress = progress or FleetProgress(len(sources), enabled=False)
     progress.update(len(run.rows), failed, force=True)
     futures = {}
     try:
-        for i, source in enumerate(todo):
-            future = client.submit(task, settings, source, key=f"hammer-ros-fleet-{i}-{source.name}", pure=False)
-            futures[future.key] = (future, source)
+        for i, batch in enumerate(batches):
+            future = client.submit(run_batch, task, settings, batch, key=f"hammer-ros-fleet-{i}-{batch[0].name}",
+                                   pure=False)
+            futures[future.key] = (future, batch)
         for future in as_completed([f for f, _ in futures.values()]):
-            source = futures[future.key][1]
-            row = _row_of(future, source)
+            rows = _rows_of(future, futures[future.key][1])
             future.release()
-            run.rows.append(row)
-            failed += bool(row.get("error"))
+            run.rows.extend(rows)
+            failed += sum(bool(row.get("error")) for row in rows)
             progress.update(len(run.rows), failed)
             if checkpoint and time.perf_counter() - last_checkpoint > CHECKPOINT_S:
                 checkpoint(run.rows)
@@ -137,8 +155,8 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
     return run
 
 
-def _row_of(future, source: BagSource) -> dict:
-    """The task's row, or an error row when Dask could not run it (e.g. KilledWorker)."""
+def _rows_of(future, batch: Sequence[BagSource]) -> list[dict]:
+    """The task's rows, or an error row per bag when Dask could not run it (e.g. KilledWorker)."""
     if future.status == "finished":
         return future.result()
     try:
@@ -146,6 +164,7 @@ def _row_of(future, source: BagSource) -> dict:
     except Exception as raised:  # cancelled, lost
         exc = raised
     reason = str(exc).strip().splitlines()[0] if exc is not None and str(exc).strip() else future.status
-    return {"path": source.path, "group": source.group, "labels": source.label_dict, "start": None, "end": None,
-            "model": None, "diagnosis": None, "out": None, "warnings": [],
-            "error": f"{source.path}: the task failed on the cluster ({type(exc).__name__}: {reason})", "seconds": None}
+    return [{"path": source.path, "group": source.group, "labels": source.label_dict, "start": None, "end": None,
+             "model": None, "diagnosis": None, "out": None, "warnings": [],
+             "error": f"{source.path}: the task failed on the cluster ({type(exc).__name__}: {reason})",
+             "seconds": None} for source in batch]
