@@ -12,7 +12,9 @@ from hammer_ros.diagnosis.diagnose import diagnose, diagnose_record
 from hammer_ros.diagnosis.generators import generate_case
 from hammer_ros.diagnosis.split import split_record
 from hammer_ros.diagnosis.wiener_hammerstein import (
+    essential_order,
     fit_nested_hammerstein,
+    fit_nested_wiener,
     fit_output_error,
     fit_wiener_hammerstein,
     splits,
@@ -146,3 +148,36 @@ def test_a_clean_record_the_baseline_fits_short_of_the_noise_is_not_input_dynami
     d = diagnose(split_record(case.v, case.y), case.order).diagnosis
     assert d.cause == "none", d.candidates
     assert any(c == "input_dynamics" and "nested" in reason for c, reason in d.not_fitted)
+
+
+def rectified(seed: int, n: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """A Wiener system with an even output map, as a speed sensor that measures |velocity|
+    (y = |G u|, G lightly damped, piecewise-constant input): its best linear approximation
+    vanishes (Bussgang: an even map of a zero-mean Gaussian-like signal has c = 0)."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-1.0, 1.0, n // 10 + 1), 10)[:n]
+    return u, np.abs(FRONT.simulate(u)) + NOISE * rng.standard_normal(n)
+
+
+def test_the_nested_wiener_model_recovers_g1_from_a_front_start_where_the_bla_vanishes():
+    """``fit_nested_wiener`` (G2 = 1): from the BLA it stalls far above the noise on |G u|; from a
+    G1 start near G (the poles moved by about 0.05, as an L-N-L fit's G1 gives it) it reaches the
+    noise, with G's poles."""
+    u, y = rectified(3)
+    assert fit_nested_wiener(u, y, FRONT.order, FRONT.delay).rms > 3 * NOISE
+    start = LinearModel.from_zeros_poles([], [0.72 + 0.34j, 0.72 - 0.34j], 1.0)
+    fit = fit_nested_wiener(u, y, FRONT.order, FRONT.delay, front=start)
+    assert fit.rms < 1.5 * NOISE
+    assert root_rss_error(fit.model.front.poles, FRONT.poles) < 0.02
+    assert essential_order(fit.model.back) == 0 and essential_order(FRONT) == 2
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_rectified_output_is_named_output_nonlinearity_not_input_dynamics(seed):
+    """On y = |G u| the L-N-L model fits, but its G2 is a static gain: ``input_dynamics`` is not
+    fitted (``not_fitted`` says why) and the Wiener model it suggests is the output map's."""
+    u, y = rectified(seed)
+    d = diagnose(split_record(u, y), None).diagnosis
+    assert d.cause == "output_nonlinearity", (d.candidates, d.not_fitted)
+    assert d.gain is not None and d.gain >= 1.15
+    assert any(c == "input_dynamics" and "Wiener model" in reason for c, reason in d.not_fitted), d.not_fitted

@@ -159,6 +159,9 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
                 extended = EXTENSIONS[candidate](ctx)
             except NUMERICAL_FAILURES as error:
                 not_fitted[candidate] = failure_reason(error)
+                suggested = getattr(error, "suggests", None)
+                if suggested is not None and suggested not in extensions and suggested not in not_fitted:
+                    fit([suggested])
                 continue
             if not np.all(np.isfinite(extended.validation_output)):
                 not_fitted[candidate] = "its simulation is not finite on the validation input"

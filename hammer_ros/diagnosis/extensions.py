@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy import signal
@@ -50,12 +51,24 @@ from .hammerstein import (
     transient_samples,
 )
 from .split import Split
-from .wiener_hammerstein import fit_nested_hammerstein, fit_wiener_hammerstein, frequency_response
+from .wiener_hammerstein import (
+    WienerHammersteinFit,
+    essential_order,
+    fit_nested_hammerstein,
+    fit_nested_wiener,
+    fit_wiener_hammerstein,
+    frequency_response,
+)
 
 
 class NotFitted(Exception):
     """An extension that cannot be fitted to this record; the message is the one-line reason
-    the diagnosis JSON gives (``not_fitted``)."""
+    the diagnosis JSON gives (``not_fitted``). ``suggests``: the cause whose model the attempt
+    found to fit as well (the diagnosis then fits that one too)."""
+
+    def __init__(self, reason: str, suggests: str | None = None):
+        super().__init__(reason)
+        self.suggests = suggests
 
 
 # what an extension may raise on a record it cannot fit (too short, constant, non-finite, singular)
@@ -111,6 +124,38 @@ class Context:
     @property
     def skip(self) -> int:
         return transient_samples(self.baseline.linear.poles, self.split.n_est)
+
+    @property
+    def map_segments(self) -> int:
+        """Segments of the maps of the L-N-L family: one more than the baseline's."""
+        return self.baseline.partition.size + 1
+
+    @cached_property
+    def wiener_hammerstein(self) -> WienerHammersteinFit | Exception:
+        """The L-N-L model (``fit_wiener_hammerstein`` of the baseline's order, both relative
+        degrees), fitted once for the extensions that use it, or why it could not be."""
+        base, s = self.baseline, self.split
+        try:
+            return fit_wiener_hammerstein(s.v_est, s.y_est, base.order, base.delay, segments=self.map_segments,
+                                          direct_term=True)
+        except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
+            return error
+
+    @cached_property
+    def nested_wiener(self) -> WienerHammersteinFit | Exception:
+        """The Wiener model y = f(G1[v]) (``fit_nested_wiener``, the baseline's order and delay)
+        from two starts, the BLA and the L-N-L model's G1 (which finds an even map's dynamics
+        where the BLA vanishes), the one with the smaller estimation error; or why not."""
+        base, s = self.baseline, self.split
+        lnl = self.wiener_hammerstein
+        fronts = [None] + ([] if isinstance(lnl, Exception) else [lnl.model.front])
+        fits: list = []
+        for front in fronts:
+            try:
+                fits.append(fit_nested_wiener(s.v_est, s.y_est, base.order, base.delay, self.map_segments, front=front))
+            except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
+                error_seen = error
+        return min(fits, key=lambda fit: fit.rms) if fits else error_seen
 
 
 def map_plot(title: str, fn: Callable[[np.ndarray], np.ndarray], samples: np.ndarray) -> MapPlot:
@@ -225,7 +270,29 @@ def extend_backlash(ctx: Context) -> ExtendedModel:
 def extend_output_nonlinearity(ctx: Context) -> ExtendedModel:
     """Hammerstein-Wiener y = N(G[F(v)]): N piecewise linear on quantiles of the baseline's
     output x, started from the least-squares fit of y on x, then everything refined on the
-    simulation error (G's largest coefficient fixed, as in the baseline)."""
+    simulation error (G's largest coefficient fixed, as in the baseline). A start of its own,
+    which does not depend on the baseline: the Wiener model y = N(G[v]) (``Context.nested_wiener``,
+    F linear), started from the best linear approximation; where the output map is not
+    invertible (a rectifier, a clamp) the Hammerstein baseline is a poor start and the Wiener
+    fit is the one that finds the map. The one with the smaller simulation error on the
+    estimation data is kept."""
+    hammerstein_wiener = _hammerstein_wiener(ctx)
+    wiener = ctx.nested_wiener
+    if isinstance(wiener, Exception):
+        return hammerstein_wiener
+    s, skip = ctx.split, ctx.skip
+    if rms_error(s.y_est[skip:], hammerstein_wiener.simulate(s.v_est)[skip:]) <= wiener.rms:
+        return hammerstein_wiener
+    model = wiener.model
+    x = model.intermediate(s.v_est)
+    details = {"wiener": model.to_json((float(np.min(x)), float(np.max(x))))}
+    maps = (map_plot("N (output map)", model.nonlinearity, x),)
+    return ExtendedModel("output_nonlinearity", "wiener (L-N), from the best linear approximation",
+                         s.validation_output(model.simulate), details, maps, model.simulate)
+
+
+def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
+    """The Hammerstein-Wiener model from the baseline (``extend_output_nonlinearity``)."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
     x = base.simulate(v)
@@ -820,19 +887,30 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
     baseline that its own refinement left short of the noise is otherwise "explained" by a front
     filter the system does not have (a clean record with a wavy map under steps: x1.43)."""
     base, s = ctx.baseline, ctx.split
+    fit = ctx.wiener_hammerstein
     try:
-        fit = fit_wiener_hammerstein(s.v_est, s.y_est, base.order, base.delay, segments=base.partition.size + 1,
-                                     direct_term=True)
+        if isinstance(fit, Exception):
+            raise fit
         nested = fit_nested_hammerstein(s.v_est, s.y_est, base.order, fit.delay, fit.segments)
     except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
         raise NotFitted(f"Wiener-Hammerstein: {error}") from error
     model = fit.model
     output = s.validation_output(model.simulate)
-    nested_rms = rms_error(s.y_val, s.validation_output(nested.model.simulate))
-    ratio = nested_rms / max(rms_error(s.y_val, output), 1e-300)
+    rms = max(rms_error(s.y_val, output), 1e-300)
+    ratio = rms_error(s.y_val, s.validation_output(nested.model.simulate)) / rms
     if not ratio >= NESTED_MARGIN:
         raise NotFitted(f"the Hammerstein model nested in it (G1 = 1), refined the same way, fits the validation data "
                         f"as well (x{ratio:.3f}): no filter before the map is needed")
+    if essential_order(model.back) == 0:
+        raise NotFitted("G2 of the L-N-L fit is a static gain once its near-cancelling pole/zero pairs are dropped: "
+                        "all dynamics are before the map (a Wiener model, an output map)",
+                        suggests="output_nonlinearity")
+    if not isinstance(ctx.nested_wiener, Exception):
+        wiener_ratio = rms_error(s.y_val, s.validation_output(ctx.nested_wiener.model.simulate)) / rms
+        if not wiener_ratio >= NESTED_MARGIN:
+            raise NotFitted(f"the Wiener model nested in it (G2 = 1), refined the same way, fits the validation data "
+                            f"as well (x{wiener_ratio:.3f}): the map sits after the dynamics (an output map)",
+                            suggests="output_nonlinearity")
     x = model.intermediate(s.v_est)
     details = {"order": base.order, "delay": fit.delay, "gain_over_nested_hammerstein": ratio,
                **model.to_json((float(np.min(x)), float(np.max(x))))}

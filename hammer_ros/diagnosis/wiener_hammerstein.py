@@ -325,6 +325,12 @@ def _without_cancellations(poles: np.ndarray, zeros: np.ndarray) -> tuple[np.nda
     return np.array(poles, dtype=complex), np.array(zeros, dtype=complex)
 
 
+def essential_order(block: LinearModel) -> int:
+    """The poles of ``block`` left when its near-cancelling pole/zero pairs are dropped (as in
+    the split): 0 for a block that is a static gain in all but a cancelling pair."""
+    return int(_without_cancellations(block.poles, block.zeros)[0].size)
+
+
 def _block(zeros: list[np.ndarray], poles: list[np.ndarray]) -> LinearModel | None:
     z = np.concatenate(zeros) if zeros else np.zeros(0, dtype=complex)
     p = np.concatenate(poles) if poles else np.zeros(0, dtype=complex)
@@ -545,14 +551,40 @@ def fit_nested_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     the BLA, the map on quantiles of u (``segments``), refined by the same Levenberg-Marquardt
     on the simulation error as ``fit_wiener_hammerstein``. The yardstick of the input-dynamics
     extension: what the L-N-L model gains over it is the front filter's, not a better optimiser's."""
+    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=False)
+
+
+def fit_nested_wiener(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0, segments: int | None = None,
+                      iterations: int = 200, front: LinearModel | None = None) -> WienerHammersteinFit:
+    """The Wiener model nested in the L-N-L structure, G2 = 1: y = f(G1[u]), G1 started from
+    ``front`` or else from the BLA of ``order`` (Bussgang: the BLA of a Wiener system is c G1;
+    an even map makes it vanish, hence the other start), scaled to the input's spread, the map
+    on quantiles of G1[u], refined by the same Levenberg-Marquardt. All dynamics before a static
+    output map (a sensor, a rectifier, a clamp after the plant): what the L-N-L model gains over
+    it is the back filter's."""
+    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=True, front=front)
+
+
+def _fit_nested(u: np.ndarray, y: np.ndarray, order: int, delay: int, segments: int | None, iterations: int,
+                dynamics_first: bool, front: LinearModel | None = None) -> WienerHammersteinFit:
+    """The L-N-L model with one block the identity and the other the BLA (or ``front``),
+    refined (see the two callers)."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     bla = fit_output_error(u, y, order, delay)
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
     identity = LinearModel(np.ones(1), np.ones(1))
-    partition, primary, mu, kappa, _ = _map_start(u, y, bla, segments, skip)
-    params = _Parameters(identity, bla, order, delay, partition, primary, full_order=False)
-    theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, params.pack(identity, bla, mu, kappa), y,
+    block, front, back = (front or bla), identity, bla
+    if dynamics_first:
+        x = _filter(block.b, block.a, u)
+        scale = float(np.std(u)) / max(float(np.std(x)), 1e-300)
+        if not np.isfinite(scale) or scale == 0.0:
+            raise IdentificationError("the linear block is zero: no start for the Wiener model")
+        front, back = block.scaled(scale), identity
+    x = _filter(front.b, front.a, u)
+    partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip)
+    params = _Parameters(front, back, order, delay, partition, primary, full_order=False)
+    theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, params.pack(front, back, mu, kappa), y,
                                        skip, iterations)
     rms = float(np.sqrt(cost / max(y.size - skip, 1)))
     return WienerHammersteinFit(params.model(theta), bla, (), rms, segments, delay)
