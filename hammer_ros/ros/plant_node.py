@@ -30,6 +30,7 @@ import rclpy  # noqa: E402  (the environment must be prepared first)
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor  # noqa: E402
 from rclpy.executors import ExternalShutdownException  # noqa: E402
 from rclpy.experimental import EventsExecutor  # noqa: E402
+from rclpy.impl.implementation_singleton import rclpy_implementation  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
@@ -165,7 +166,12 @@ def main(argv: list[str] | None = None) -> int:
         executor = EventsExecutor()
         executor.add_node(node)
         while rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except rclpy_implementation.RCLError:
+                if rclpy.ok():
+                    raise
+                break  # Ctrl-C shut the context down in the middle of a timer's publish: a clean stop
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
