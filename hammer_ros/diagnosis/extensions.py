@@ -150,6 +150,7 @@ class Context:
         lnl = self.wiener_hammerstein
         fronts = [None] + ([] if isinstance(lnl, Exception) else [lnl.model.front])
         fits: list = []
+        error_seen: Exception = IdentificationError("no start for the Wiener model")
         for front in fronts:
             try:
                 fits.append(fit_nested_wiener(s.v_est, s.y_est, base.order, base.delay, self.map_segments, front=front))
@@ -285,9 +286,11 @@ def extend_output_nonlinearity(ctx: Context) -> ExtendedModel:
         return hammerstein_wiener
     model = wiener.model
     x = model.intermediate(s.v_est)
-    details = {"wiener": model.to_json((float(np.min(x)), float(np.max(x))))}
+    details = {"order": model.front.order, "delay": model.front.delay,
+               "poles": [[float(p.real), float(p.imag)] for p in model.front.poles],
+               "wiener": model.to_json((float(np.min(x)), float(np.max(x))))}
     maps = (map_plot("N (output map)", model.nonlinearity, x),)
-    return ExtendedModel("output_nonlinearity", "wiener (L-N), from the best linear approximation",
+    return ExtendedModel("output_nonlinearity", "wiener (L-N)",
                          s.validation_output(model.simulate), details, maps, model.simulate)
 
 
@@ -885,7 +888,11 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
     beat the Hammerstein model nested in it (G1 = 1, ``fit_nested_hammerstein``: same map size,
     same delay, same Levenberg-Marquardt) by NESTED_MARGIN on the validation data: a Hammerstein
     baseline that its own refinement left short of the noise is otherwise "explained" by a front
-    filter the system does not have (a clean record with a wavy map under steps: x1.43)."""
+    filter the system does not have (a clean record with a wavy map under steps: x1.43). Likewise
+    the Wiener model nested in it (G2 = 1, ``Context.nested_wiener``), and G2 must be more than a
+    gain once its near-cancelling pole/zero pairs are dropped (``essential_order``): when all the
+    dynamics are before the map, the L-N-L model is a Wiener model in disguise (y = |G u| is fitted
+    with G2 a gain times a cancelling pair), and the extension suggests ``output_nonlinearity``."""
     base, s = ctx.baseline, ctx.split
     fit = ctx.wiener_hammerstein
     try:
