@@ -273,10 +273,10 @@ def extend_output_nonlinearity(ctx: Context) -> ExtendedModel:
     output x, started from the least-squares fit of y on x, then everything refined on the
     simulation error (G's largest coefficient fixed, as in the baseline). A start of its own,
     which does not depend on the baseline: the Wiener model y = N(G[v]) (``Context.nested_wiener``,
-    F linear), started from the best linear approximation; where the output map is not
-    invertible (a rectifier, a clamp) the Hammerstein baseline is a poor start and the Wiener
-    fit is the one that finds the map. The one with the smaller simulation error on the
-    estimation data is kept."""
+    F linear), started from the best linear approximation and from the L-N-L fit's G1; where the
+    output map is not invertible (a rectifier, a clamp) the Hammerstein baseline is a poor start
+    and the Wiener fit is the one that finds the map. The one with the smaller simulation error
+    on the estimation data is kept."""
     hammerstein_wiener = _hammerstein_wiener(ctx)
     wiener = ctx.nested_wiener
     if isinstance(wiener, Exception):
