@@ -260,9 +260,7 @@ def test_sigkill_of_a_worker_mid_run_loses_no_bag(fleet, tmp_path):
 def test_ctrl_c_keeps_the_finished_bags_and_resume_finishes_the_rest(fleet, scheduler_run, tmp_path):
     root, _ = fleet
     out = tmp_path / "out"
-    # --diagnose: a few seconds per bag, so that Ctrl-C lands mid-run even when this process is slow to
-    # see the progress bar on a loaded machine (24 plain replays take only ~4 s on one worker)
-    argv = (str(root / "bags"), "--config", CONFIG, "--workers", "1", "--batch", "1", "--diagnose", "--out", str(out))
+    argv = (str(root / "bags"), "--config", CONFIG, "--workers", "1", "--batch", "1", "--out", str(out))
     proc, state, reader = start_fleet(*argv)
     wait_for(lambda: state["done"] >= 3 or proc.poll() is not None, 240, "3 bags done")
     proc.send_signal(signal.SIGINT)

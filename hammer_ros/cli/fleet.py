@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -26,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.runner import FleetProgress, connect, run_fleet
     from ..fleet.table import read_rows, write_parquet
     from ..io.bags import engine_config_from_params, forget_warnings, load_msg_config, stream_specs
-    from .replay import replay_settings
+    from .replay import SignalStop, replay_settings
 
     forget_warnings()
     if args.scheduler and args.workers is not None:
@@ -69,15 +70,16 @@ def run(args: argparse.Namespace) -> int:
     client, cluster = connect(args.scheduler, args.workers if args.workers is not None else os.cpu_count() or 1)
     try:
         progress = FleetProgress(len(sources))
-        run = run_fleet(client, sources, settings, done_rows, progress=progress, batch=args.batch,
-                        checkpoint=lambda rows: write_parquet(rows, parquet, settings.fingerprint(),
-                                                              config.sample_rate))
+        with SignalStop(interrupt=True) as stop:  # SIGINT or SIGTERM: keep what finished, exit 128 + signal
+            run = run_fleet(client, sources, settings, done_rows, progress=progress, batch=args.batch,
+                            checkpoint=lambda rows: write_parquet(rows, parquet, settings.fingerprint(),
+                                                                  config.sample_rate))
     finally:
         _close(client, cluster)
     if run.interrupted:
         print(f"hammer-ros: fleet interrupted: {len(run.rows)} of {len(sources)} bags in {parquet}, {run.missing} "
               f"missing (run the same command with --resume to finish them)", file=sys.stderr)
-        return 130
+        return 128 + (stop.signal or signal.SIGINT)
     return report(run.rows, sources, config.sample_rate, out_dir, args.json, run.wall_s, run.workers,
                   resumed=len(done_rows))
 

@@ -87,14 +87,20 @@ class Progress:
 class SignalStop:
     """While active, SIGINT and SIGTERM only set ``signal`` (the number), so that replay stops at
     a safe point between messages, solves once more on what it read, finishes the output MCAP
-    and prints the final model instead of dying with a half-written file. Main thread only."""
+    and prints the final model instead of dying with a half-written file. ``interrupt``: also
+    raise KeyboardInterrupt (a caller blocked in a wait, e.g. the fleet's, stops at once). The
+    handlers are installed even where the shell started the process with SIGINT ignored (a
+    background job). Main thread only."""
 
-    def __init__(self) -> None:
+    def __init__(self, interrupt: bool = False) -> None:
         self.signal: int | None = None
+        self.interrupt = interrupt
         self._previous: dict[int, object] = {}
 
     def _handle(self, signum: int, frame) -> None:
         self.signal = signum
+        if self.interrupt:
+            raise KeyboardInterrupt
 
     def __enter__(self) -> SignalStop:
         if threading.current_thread() is threading.main_thread():
