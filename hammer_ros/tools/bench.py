@@ -526,7 +526,7 @@ def _ingest_one_by_one(config: EngineConfig, rate: float | None, seconds: float,
 
 def _solve_elsewhere(snapshot) -> bool:
     """``solve_snapshot`` in a worker process; only whether it succeeded comes back (a result
-    holds its simulator as a closure, which does not pickle)."""
+    holds its simulator as a closure, which cannot be sent between processes)."""
     return solve_snapshot(snapshot).ok
 
 
