@@ -6,13 +6,18 @@ the test's own clock (any start, any jump), so every counter of the node can be 
 from __future__ import annotations
 
 import json
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 from conftest import G1
-from ros_helpers import Listener
+from ros_helpers import Listener, RosProcess
 
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.identification.simulate import HammersteinStream
+from hammer_ros.ros.environment import DomainLease, child_environment
 
 RATE = 200.0
 WINDOW = 2000
@@ -127,3 +132,24 @@ class Observer:
                          and m["stamp"] is not None and abs(m["stamp"] - stamp) < 1e-6), None)
 
         return self.listener.wait_for(found, timeout=timeout, what=f"a fresh model on the window ending at {stamp}")
+
+
+@contextmanager
+def stamped_node(logs: Path, parameters: dict) -> Iterator[Listener]:
+    """A node with ``parameters`` on a private ROS_DOMAIN_ID and a listener in this process that
+    feeds it (``plant``: StampedPlant) and watches it (``observer``: Observer; ``process``: the
+    node's RosProcess, ``env``: its environment); the node must exit 0 on SIGINT at the end."""
+    with DomainLease() as lease:
+        env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
+        node = RosProcess("hammer_ros.ros.node", parameters, env, logs / "node.log")
+        listener = Listener(env)
+        try:
+            listener.observer = Observer(listener)
+            listener.plant = StampedPlant(listener)
+            listener.process = node
+            listener.env = env
+            yield listener
+        finally:
+            listener.close()
+            code = node.stop(signal.SIGINT)
+            assert code == 0, node.output()[-3000:]

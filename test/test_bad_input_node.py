@@ -10,10 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from ros_helpers import Listener, RosProcess
-from stamped_plant import NODE, RATE, WINDOW, Observer, StampedPlant, pole_error
-
-from hammer_ros.ros.environment import DomainLease, child_environment
+from stamped_plant import NODE, RATE, WINDOW, pole_error, stamped_node
 
 pytestmark = pytest.mark.ros
 
@@ -22,24 +19,11 @@ GOOD = 0.05  # RSS pole error of a model on one 10 s window (the truth's poles: 
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    logs = tmp_path_factory.mktemp("bad_input_node")
-    with DomainLease() as lease:
-        env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
-        node = RosProcess("hammer_ros.ros.node", NODE, env, logs / "node.log")
-        listener = Listener(env)
-        try:
-            listener.observer = Observer(listener)
-            listener.plant = StampedPlant(listener)
-            listener.process = node
-            listener.env = env
-            while not listener.observer.count("received_response"):  # DDS may drop what precedes discovery
-                listener.plant.send(100)
-                listener.observer.next_solve()
-            yield listener
-        finally:
-            listener.close()
-            code = node.stop(signal.SIGINT)
-            assert code == 0, node.output()[-3000:]
+    with stamped_node(tmp_path_factory.mktemp("bad_input_node"), NODE) as listener:
+        while not listener.observer.count("received_response"):  # DDS may drop what precedes discovery
+            listener.plant.send(100)
+            listener.observer.next_solve()
+        yield listener
 
 
 def identifies(rig, n: int = WINDOW + 500) -> dict:

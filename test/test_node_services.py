@@ -5,13 +5,9 @@ run in order on the same node."""
 from __future__ import annotations
 
 import json
-import signal
 
 import pytest
-from ros_helpers import Listener, RosProcess
-from stamped_plant import NODE, WINDOW, Observer, StampedPlant, pole_error
-
-from hammer_ros.ros.environment import DomainLease, child_environment
+from stamped_plant import NODE, WINDOW, pole_error, stamped_node
 
 pytestmark = pytest.mark.ros
 
@@ -20,21 +16,9 @@ SERVICE_NODE = {**NODE, "solve_rate": 0.01, "diagnosis_period": 0.0, "diagnosis_
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory):
-    logs = tmp_path_factory.mktemp("services")
-    with DomainLease() as lease:
-        env = child_environment(lease.domain_id, log_dir=logs / "ros_log")
-        node = RosProcess("hammer_ros.ros.node", SERVICE_NODE, env, logs / "node.log")
-        listener = Listener(env)
-        try:
-            listener.observer = Observer(listener)
-            listener.diagnoses = listener.subscribe_json("/hammer_ros/diagnosis")
-            listener.plant = StampedPlant(listener)
-            listener.process = node
-            yield listener
-        finally:
-            listener.close()
-            code = node.stop(signal.SIGINT)
-            assert code == 0, node.output()[-3000:]
+    with stamped_node(tmp_path_factory.mktemp("services"), SERVICE_NODE) as listener:
+        listener.diagnoses = listener.subscribe_json("/hammer_ros/diagnosis")
+        yield listener
 
 
 def call(rig, service: str):
