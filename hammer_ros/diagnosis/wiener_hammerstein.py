@@ -574,13 +574,15 @@ def _fit_nested(u: np.ndarray, y: np.ndarray, order: int, delay: int, segments: 
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
     identity = LinearModel(np.ones(1), np.ones(1))
-    block, front, back = (front or bla), identity, bla
     if dynamics_first:
+        block = bla if front is None else front
         x = _filter(block.b, block.a, u)
         scale = float(np.std(u)) / max(float(np.std(x)), 1e-300)
         if not np.isfinite(scale) or scale == 0.0:
             raise IdentificationError("the linear block is zero: no start for the Wiener model")
         front, back = block.scaled(scale), identity
+    else:
+        front, back = identity, bla
     x = _filter(front.b, front.a, u)
     partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip)
     params = _Parameters(front, back, order, delay, partition, primary, full_order=False)

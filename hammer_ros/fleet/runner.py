@@ -115,8 +115,9 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
               checkpoint: Callable[[list[dict]], None] | None = None, progress: FleetProgress | None = None,
               task: Callable[[FleetSettings, BagSource], dict] = run_bag, batch: int | None = None) -> FleetRun:
     """Submit the bags in ``sources`` (minus those in ``done_rows``) in tasks of ``batch`` bags
-    (default ``batch_size``), gather the rows as they finish; ``checkpoint(rows)`` every CHECKPOINT_S and at the end.
-    Ctrl-C cancels what is left and returns what finished (``interrupted``)."""
+    (default ``batch_size``), gather the rows as they finish; ``checkpoint(rows)`` every
+    CHECKPOINT_S and at the end. Ctrl-C cancels what is left and returns what finished
+    (``interrupted``)."""
     from distributed import as_completed
 
     run = FleetRun(rows=list(done_rows), workers=worker_count(client))
