@@ -137,3 +137,25 @@ def test_refined_extension_recovers_the_poles_and_the_feedback_map(baseline):
     rms = np.sqrt(np.mean((ext.validation_output - split.y_val) ** 2))
     assert rms < 0.04 * np.std(split.y_val)  # the noise is 0.02 std(y)
 
+
+
+def test_a_record_that_starts_at_rest_away_from_its_first_input_is_fitted_from_its_first_sample():
+    """The plant held at rest at u_a = -0.8, then the record starts with the steps (its first input
+    is not u_a): the extension estimates the record's initial state with the loop, so its
+    ``initial_input`` is u_a (the truth, within 3 % of the input range; a start at rest at the
+    first input would be 2.2 off), and A's poles come out right."""
+    u_a, hold = -0.8, 400
+    v, _ = plant_record(2400, seed=5, noise=0.0)
+    v = np.concatenate([np.full(hold, u_a), v])
+    y = simulate_hammerstein_feedback(v, lambda x: x, h_true, LinearModel(B_TRUE, A_TRUE))[hold:]
+    v = v[hold:]
+    assert abs(v[0] - u_a) > 1.0
+    y = y + 0.02 * np.std(y) * np.random.default_rng(6).standard_normal(y.size)
+    split = split_record(v, y, 0.7)
+    base = fit_hammerstein(split.v_est, split.y_est, 2, 1, quantile_partition(split.v_est, 3), free_knots=False)
+    ext = extend_output_feedback(Context(split, base, None, None))
+    assert abs(ext.details["initial_input"] - u_a) < 0.03 * np.ptp(v), ext.details["initial_input"]
+    a, b = np.asarray(ext.details["a"]), np.asarray(ext.details["b"])
+    h_plot = ext.maps[1]
+    poles, _ = _aligned(a, b, PiecewiseLinearMap(h_plot.x, h_plot.y, 0.0, 0.0), split.y_est)
+    np.testing.assert_allclose(poles, np.sort(np.roots(A_TRUE)), atol=0.015)

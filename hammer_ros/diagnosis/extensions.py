@@ -50,7 +50,7 @@ from .hammerstein import (
     refine_hammerstein,
     transient_samples,
 )
-from .split import Split
+from .split import INITIAL_SAMPLES, Split, rest_input
 from .wiener_hammerstein import (
     WienerHammersteinFit,
     essential_order,
@@ -430,21 +430,26 @@ class FeedbackLayout:
     def fixed_b(self) -> int:
         return int(np.setdiff1d(np.flatnonzero(self.b_template), self.free_b)[0])
 
-    def runner(self, u: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-        """theta -> the loop's output for the input u from zero initial conditions: ``unpack``
-        and ``simulate_hammerstein_feedback`` with the point-slope bases of u and of h's knots
-        computed once (the refinement's inner loop)."""
+    def runner(self, u: np.ndarray, preroll: int) -> Callable[[np.ndarray], np.ndarray]:
+        """[level, theta] -> the loop's output for the input u, started at rest at the constant
+        input ``level`` (``preroll`` samples of it simulated first from zero initial conditions
+        and dropped): ``unpack`` and ``simulate_hammerstein_feedback`` with the point-slope bases
+        of u and of h's knots computed once (the refinement's inner loop)."""
         eta = np.column_stack([point_slope_basis(u, self.f_part, self.f_primary), np.ones(np.size(u))])
         at_knots = point_slope_basis(self.h_part, self.h_part, self.h_primary)
         n, nb, nf = self.order, self.free_b.size, self.f_part.size + 2
 
-        def run(theta: np.ndarray) -> np.ndarray:
+        def run(extended: np.ndarray) -> np.ndarray:
+            level, theta = extended[0], extended[1:]
             b = self.b_template.copy()
             b[self.free_b] = theta[n : n + nb]
-            forced = np.convolve(eta @ theta[n + nb : n + nb + nf], b)[: eta.shape[0]]
+            coefficients = theta[n + nb : n + nb + nf]
+            at_level = np.append(point_slope_basis(np.array([level]), self.f_part, self.f_primary)[0], 1.0)
+            drive = np.concatenate([np.full(preroll, at_level @ coefficients), eta @ coefficients])
+            forced = np.convolve(drive, b)[: drive.size]
             free_h = theta[n + nb + nf :]
             h_slopes = np.insert(free_h, self.h_dependent, -np.sum(free_h))
-            return feedback_loop(forced, b[1:], theta[:n], self.h_part, at_knots @ h_slopes, h_slopes)
+            return feedback_loop(forced, b[1:], theta[:n], self.h_part, at_knots @ h_slopes, h_slopes)[preroll:]
 
         return run
 
@@ -505,11 +510,16 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     Starts (``FeedbackLayout`` fixes the representation): PLLS for this structure on the raw
     estimation data (eqs. 63-71), the baseline (h = 0), and ``random_starts`` random ones (the
     baseline's or PLLS's poles moved at random, a random h, f by least squares with the measured
-    y in the loop, ``_loop_start``), ranked by their simulation error. PLLS, the baseline and
-    the best random ones (SCREENED_STARTS in all) are refined SCREEN_ITERATIONS LM steps on the
-    simulation error; the KEPT_STARTS best are refined to the end and the best on the
-    estimation data is kept. Then the tails of f and h (``_choose_tails``) are chosen on
-    held-back estimation data."""
+    y in the loop, ``_loop_start``), ranked by their simulation error. The record is taken to
+    start at rest at an unknown constant input (the initial state, ``initial_input``), which is
+    refined with the loop from the baseline's ``rest_input`` at the first outputs, so that no
+    estimation sample is dropped as a transient (the start of a record can hold its most
+    informative excursion). PLLS, the baseline and the best random ones (SCREENED_STARTS in
+    all) are refined SCREEN_ITERATIONS LM steps on the simulation error; the KEPT_STARTS best
+    are refined to the end and the best on the estimation data is kept. Then the tails of f and
+    h (``_choose_tails``) are chosen on held-back estimation data; when the chosen tails drive
+    the loop unstable on the validation input (its output alone decides nothing), both maps
+    continue with their last slopes."""
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     delay = max(base.delay, 1)
@@ -565,36 +575,48 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     if not starts:
         raise NotFitted("no start of the loop is finite")
 
-    run = layout.runner(np.concatenate([np.full(preroll, v[0]), v]))
+    level = rest_input(base.simulate, float(np.mean(y[:INITIAL_SAMPLES])), v)
+    starts = [np.concatenate([[level], t]) for t in starts]  # [initial level, theta]
+    run = layout.runner(v, preroll)
+    everything = np.ones(v.size, dtype=bool)
 
     def cost(theta: np.ndarray, keep: np.ndarray, tails: tuple | None = None) -> float:
         with np.errstate(all="ignore"):
-            out = run(theta)[preroll:] if tails is None else layout.simulator(theta, preroll, tails)(v)
+            if tails is None:
+                out = run(theta)
+            else:
+                rest = np.concatenate([np.full(preroll, theta[0]), v])
+                out = layout.simulator(theta[1:], 0, tails)(rest)[preroll:]
             c = float(np.sum((out[keep] - y[keep]) ** 2))
         return c if np.isfinite(c) else np.inf
 
     def fit(theta: np.ndarray, iterations: int, keep: np.ndarray | None = None):
         """(theta, cost on the estimation samples in ``keep``) after ``iterations`` LM steps."""
-        keep = np.arange(v.size) >= skip if keep is None else keep
-        theta = refine(lambda t: run(t)[preroll:][keep], theta, y[keep], iterations)
+        keep = everything if keep is None else keep
+        theta = refine(lambda t: run(t)[keep], theta, y[keep], iterations)
         return theta, cost(theta, keep)
 
-    ranked = sorted(starts[deterministic:], key=lambda t: cost(t, np.arange(v.size) >= skip))
+    ranked = sorted(starts[deterministic:], key=lambda t: cost(t, everything))
     screened = [fit(t, SCREEN_ITERATIONS) for t in starts[:deterministic] + ranked[: SCREENED_STARTS - deterministic]]
     screened.sort(key=lambda tc: tc[1])
     finished = [fit(t, FEEDBACK_ITERATIONS) for t, c in screened[:KEPT_STARTS] if np.isfinite(c)]
     if not finished:
         raise NotFitted("the simulation of every start of the loop diverges on the estimation data")
     theta = min(finished, key=lambda tc: tc[1])[0]
-    tails = _choose_tails(theta, v, y, skip, fit, cost)
-    a, b, f_map, h_map = layout.unpack(theta)
-    f_map, h_map = with_tails(f_map, *tails[0], *tails[1]), with_tails(h_map, *tails[2], *tails[3])
-    simulate = _feedback_simulator(a, b, f_map, h_map, preroll)
-    output = s.validation_output(simulate)
-    if not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y):
+    a, b, f_fit, h_fit = layout.unpack(theta[1:])
+    # the chosen tails, or the last slopes when those drive the loop unstable
+    for tails in (_choose_tails(theta, v, y, fit, cost), _slope_tails(v, y)):
+        f_map, h_map = with_tails(f_fit, *tails[0], *tails[1]), with_tails(h_fit, *tails[2], *tails[3])
+        simulate = _feedback_simulator(a, b, f_map, h_map, preroll)
+        output = s.validation_output(simulate)
+        diverges = not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y)
+        if not diverges:
+            break
+    if diverges:
         raise NotFitted("the fitted loop diverges on the validation input")
     maps = (map_plot("f (input map)", f_map, v), map_plot("h (feedback map; its linear part is in A)", h_map, y))
-    details = {"feedback_breakpoints": h_part.tolist(), "starts": len(starts), "a": a.tolist(), "b": b.tolist(),
+    details = {"feedback_breakpoints": h_part.tolist(), "starts": len(starts), "initial_input": float(theta[0]),
+               "a": a.tolist(), "b": b.tolist(),
                "tails": {"f": dict(zip(("left", "right"), tails[1])), "h": dict(zip(("left", "right"), tails[3]))},
                **_order_details(replace(base, a=a, b=b))}
     return ExtendedModel("output_feedback", "hammerstein / non-linear feedback (PLLS)", output, details, maps,
@@ -615,7 +637,12 @@ def _held_back(x: np.ndarray, side: int, parts: int = 4) -> slice:
     return best
 
 
-def _choose_tails(theta: np.ndarray, v: np.ndarray, y: np.ndarray, skip: int, fit, cost) -> tuple:
+def _slope_tails(v: np.ndarray, y: np.ndarray) -> tuple:
+    """Both maps continued with their last slopes (``_choose_tails``' form)."""
+    return (float(v.min()), float(v.max())), ("slope", "slope"), (float(y.min()), float(y.max())), ("slope", "slope")
+
+
+def _choose_tails(theta: np.ndarray, v: np.ndarray, y: np.ndarray, fit, cost) -> tuple:
     """How f (on v) and h (on y) continue beyond the estimation data (``with_tails``), each side
     on its own: the model is refined (TAIL_ITERATIONS from ``theta``) on the estimation data
     less the held-back quarter (``_held_back``: the one reaching furthest beyond the others on
@@ -628,13 +655,12 @@ def _choose_tails(theta: np.ndarray, v: np.ndarray, y: np.ndarray, skip: int, fi
     for m, x in enumerate((v, y)):
         for side in (0, 1):
             held = _held_back(x, side)
-            keep = np.arange(v.size) >= skip
+            keep = np.ones(v.size, dtype=bool)
             keep[held] = False
             if held.start not in fits:
                 fits[held.start] = fit(theta, TAIL_ITERATIONS, keep)[0]
             test = np.zeros(v.size, dtype=bool)
             test[held] = True
-            test[:skip] = False
             rest = [(float(z[keep].min()), float(z[keep].max())) for z in (v, y)]
             scores = {}
             for tail in TAILS:

@@ -72,23 +72,28 @@ def held_back(v: np.ndarray, samples: int) -> np.ndarray:
     return delayed(v, samples, float(v[0])) if np.size(v) else np.asarray(v, dtype=float)
 
 
-def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0: float,
-                 inputs: np.ndarray) -> np.ndarray:
-    """simulate(v) started at rest at the constant input u0 whose steady-state output is
-    closest to y0 (u0 searched over the range of ``inputs``): the unknown initial state of a
-    separate record, taken as the equilibrium that explains its first measured output."""
+def rest_input(simulate: Callable[[np.ndarray], np.ndarray], y0: float, inputs: np.ndarray) -> float:
+    """The constant input u0 (searched over the range of ``inputs``) at whose rest the model's
+    output is closest to y0: the equilibrium that explains a record's first measured output."""
     lo, hi = float(np.min(inputs)), float(np.max(inputs))
     grid = np.linspace(lo, hi, 41)
     levels = simulate(np.repeat(grid, REST_SAMPLES))[REST_SAMPLES - 1 :: REST_SAMPLES]
     distance = np.abs(np.nan_to_num(levels, nan=np.inf) - y0)
     i = int(np.argmin(distance))
     a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
-    if b > a:
-        found = minimize_scalar(lambda u0: abs(simulate(np.full(REST_SAMPLES, u0))[-1] - y0), bounds=(a, b),
-                                method="bounded", options={"xatol": 1e-4 * (hi - lo + 1e-12), "maxiter": 25})
-        u0 = float(found.x) if found.fun <= distance[i] else float(grid[i])
-    else:
-        u0 = float(grid[i])
+    if b <= a:
+        return float(grid[i])
+    found = minimize_scalar(lambda u0: abs(simulate(np.full(REST_SAMPLES, u0))[-1] - y0), bounds=(a, b),
+                            method="bounded", options={"xatol": 1e-4 * (hi - lo + 1e-12), "maxiter": 25})
+    return float(found.x) if found.fun <= distance[i] else float(grid[i])
+
+
+def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0: float,
+                 inputs: np.ndarray) -> np.ndarray:
+    """simulate(v) started at rest at the constant input ``rest_input`` (searched over the range
+    of ``inputs``): the unknown initial state of a separate record, taken as the equilibrium that
+    explains its first measured output."""
+    u0 = rest_input(simulate, y0, inputs)
     return simulate(np.concatenate([np.full(REST_SAMPLES, u0), v]))[REST_SAMPLES:]
 
 
