@@ -100,3 +100,22 @@ def test_reset_clears_the_window_and_keeps_the_parameters(rig):
     assert model["samples"] == WINDOW and model["order"] == NODE["order"]  # the parameters stayed
     assert pole_error(model) < 0.05
     assert rig.process.process.poll() is None
+
+
+def test_a_lost_solver_process_is_reported_and_the_node_solves_on(rig):
+    """The node solves in a worker process of its own (``solver_process``); when that process is
+    killed, the node says so on /diagnostics and solves in its own thread from then on."""
+    import os
+    import signal
+
+    solver = rig.observer.diagnostics[-1]["solver"]
+    assert solver.startswith("process "), solver
+    os.kill(int(solver.split()[1]), signal.SIGKILL)
+    t = rig.plant.send(500)
+    _, message = call_until(rig, "solve", lambda ok, m: ok and json.loads(m)["stamp"] == pytest.approx(t[-1]),
+                            what="a model from ~/solve after the solver process was killed")
+    assert pole_error(json.loads(message)) < 0.05
+    rig.wait_for(lambda: rig.observer.diagnostics[-1]["solver"].startswith("thread (the solver process exited "
+                                                                            "(exit code -9))"),
+                 what="/diagnostics reporting the lost solver process")
+    assert rig.process.process.poll() is None

@@ -296,6 +296,7 @@ class FileIndex:
     channels: dict[int, Any]
     counts: dict[int, int]
     damage: tuple[str, ...]
+    span: tuple[int, int] | None = None  # log times (ns) of the first and the last message
 
 
 def file_index(file: Path) -> FileIndex:
@@ -319,10 +320,13 @@ def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
     except (McapError, ValueError, EOFError, OSError, struct.error):
         summary = None  # no footer or summary: an unfinished or damaged recording, scanned below
     if summary is not None and summary.statistics is not None:
-        return FileIndex(path, dict(summary.schemas), dict(summary.channels),
-                         dict(summary.statistics.channel_message_counts), ())
+        stats = summary.statistics
+        span = (stats.message_start_time, stats.message_end_time) if stats.message_count else None
+        return FileIndex(path, dict(summary.schemas), dict(summary.channels), dict(stats.channel_message_counts),
+                         (), span)
     scan = _RecordScan(path)
     schemas, channels, counts = {}, {}, {}
+    first = last = None
     for group in scan.groups():
         for record in group:
             if isinstance(record, Schema):
@@ -331,10 +335,12 @@ def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
                 channels[record.id] = record
             elif isinstance(record, Message):
                 counts[record.channel_id] = counts.get(record.channel_id, 0) + 1
+                first = record.log_time if first is None else min(first, record.log_time)
+                last = record.log_time if last is None else max(last, record.log_time)
     if not scan.header_seen:
         reason = scan.damage[0] if scan.damage else "no MCAP header record"
         raise UsageError(f"{path}: not a readable MCAP file ({'empty file' if size == 0 else reason})")
-    return FileIndex(path, schemas, channels, counts, tuple(scan.damage))
+    return FileIndex(path, schemas, channels, counts, tuple(scan.damage), None if first is None else (first, last))
 
 
 def bag_topics(path: str | Path) -> dict[str, str]:
@@ -358,6 +364,12 @@ def bag_message_counts(path: str | Path) -> dict[str, int]:
             if channel is not None:
                 counts[channel.topic] = counts.get(channel.topic, 0) + count
     return counts
+
+
+def bag_duration(path: str | Path) -> float:
+    """Seconds from the first to the last message of the bag (log times; 0 when it has none)."""
+    spans = [s for s in (file_index(f).span for f in bag_files(path)) if s is not None]
+    return 1e-9 * (max(s[1] for s in spans) - min(s[0] for s in spans)) if spans else 0.0
 
 
 def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, str]:

@@ -5,6 +5,13 @@
 solves every 1 / solve_rate seconds of bag time and once at the end, and turns each solve into
 the node's output messages, written into an MCAP (``out``) and/or handed to a live publisher.
 It prints nothing; ``ReplayResult.document()`` is the ``replay --json`` document.
+
+With a ``SolverProcess`` the solves run in a worker process while the loop reads on: a solve's
+snapshot is sent at its bag time, and the outcomes that have arrived are collected in order
+(their messages written) whenever a solve is due, and all at the end. The messages, their stamps
+and counters are those of the in-process loop (the counters and read statistics are taken at
+the snapshot, and the worker holds the published model), so the output file is the same either
+way; only the wall time differs.
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +31,8 @@ from ..errors import IdentificationError, UsageError
 from ..ros.dashboard import record_results
 from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
 from ..streaming.config import EngineConfig, EngineStats
-from ..streaming.engine import SolveOutcome, StreamingEngine
+from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome
+from ..streaming.solver_process import SolverProcess
 from .bags import (
     FLUSH_SAMPLES,
     BagReadStats,
@@ -37,6 +46,7 @@ from .bags import (
 )
 
 NODE_NAME = "hammer_ros"
+MAX_IN_FLIGHT = 64  # snapshots sent to a SolverProcess and not yet collected (about 70 kB each at W = 4000)
 
 
 class Publisher(Protocol):
@@ -93,14 +103,16 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                solve_rate: float, *, frame_id: str = "", out: str | Path | None = None,
                publisher: Publisher | None = None, rate: float | None = None, stop: Stop | None = None,
                progress: Callable[[int, int, int, bool], None] | None = None,
-               node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False) -> ReplayResult:
+               node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False,
+               solver: SolverProcess | None = None) -> ReplayResult:
     """Replay ``bag`` (checked by ``check_replay_input``) through a new engine.
 
     ``out``: write every result message into this MCAP (with ``atomic``: under a temporary name,
     renamed when complete, so that a reader never sees half a file); ``publisher`` with ``rate``:
     pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
     ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
-    ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads).
+    ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads);
+    ``solver``: solve there, overlapping the reading (module docstring).
     """
     counts = bag_message_counts(bag)
     total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
@@ -113,22 +125,42 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     done = 0
     started = time.perf_counter()
 
-    def solve(bag_time: float) -> None:
+    in_flight: deque = deque()  # (counters at the snapshot, read statistics then, bag time) of solves in the solver
+
+    def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], bag_time: float) -> None:
         nonlocal last_ok, last
-        engine.flush()
-        last = engine.solve()
+        last = outcome
         last_ok = last if last.ok else last_ok
         stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
         messages = result_messages(last, stamp, frame_id)
         if not last.ok and last_ok is not None:
             messages.append(stale_model_message(last_ok, last))
-        diagnostics = diagnostics_message(engine.stats, last, stamp, node_name)
-        diagnostics["status"][0]["values"].extend(bag_values(read))
+        diagnostics = diagnostics_message(stats, last, stamp, node_name)
+        diagnostics["status"][0]["values"].extend(read_values)
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         if writer:  # first into the file (with the Foxglove dashboard channels): whatever is published is in it
             record_results(writer, messages, stamp, node_name)
         for topic, type_name, message in messages if publisher else ():
             publisher.publish(topic, type_name, message)
+
+    def collect(wait: bool) -> None:
+        """Emit the outcomes that have arrived (``wait``: every one in flight), in order."""
+        while in_flight and (wait or solver.ready()):
+            stats, read_values, bag_time = in_flight.popleft()
+            outcome = solver.result()
+            engine.record(outcome)
+            count_outcome(stats, outcome)
+            emit(outcome, stats, read_values, bag_time)
+
+    def solve(bag_time: float, final: bool = False) -> None:
+        engine.flush()
+        if solver is None:
+            emit(engine.solve(), engine.stats, bag_values(read), bag_time)
+            return
+        snapshot = engine.snapshot()
+        solver.submit(snapshot)
+        in_flight.append((snapshot.stats, bag_values(read), bag_time))
+        collect(wait=final or len(in_flight) > MAX_IN_FLIGHT)
 
     bag_start = next_solve = None
     bag_time = float("nan")
@@ -153,7 +185,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             done += 1
             if progress:
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
-        solve(bag_time)  # the final model, also after a signal
+        solve(bag_time, final=True)  # the final model, also after a signal
         if progress:
             progress(done, engine.stats.aligned, engine.stats.solves, True)
         complete = True

@@ -3,8 +3,10 @@ their checks; ``node`` runs it unmanaged, ``managed_node`` as a lifecycle node.
 
 A thin adapter over ``streaming.StreamingEngine``: two subscriptions (sensor-data QoS) feed the
 excitation and response samples into the engine, a worker thread solves on a snapshot of the
-window ``solve_rate`` times a second and publishes the results built by ``outputs``. Ingestion
-never waits for a solve (a slow solve skips solves, never samples); parameters are validated and
+window ``solve_rate`` times a second and publishes the results built by ``outputs``. The solve
+itself runs in a ``SolverProcess`` (parameter ``solver_process``, on by default), so it never
+holds the interpreter lock against the callbacks and the ingest thread. Ingestion never waits
+for a solve (a slow solve skips solves, never samples); parameters are validated and
 applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
 without a new model republishes the last good one marked stale. With ``output_mcap`` every
 published result is also recorded; on SIGINT/SIGTERM the node solves once more, records the
@@ -52,6 +54,7 @@ from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
+from ..streaming.solver_process import SolverProcess  # noqa: E402
 from .cdr import raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
@@ -116,6 +119,9 @@ PARAMETERS: dict[str, Spec] = {
     "refine": Spec(False, "bool", "refine each solve's estimate on the simulation error of the window "
                    "(identify --refine; slower solves, unbiased poles under output noise)"),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
+    "solver_process": Spec(True, "bool", "solve in a worker process of the node's own, so that a solve never holds "
+                           "the interpreter lock against ingestion; false = in the node's solver thread",
+                           read_only=True),
     "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
                              "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
     "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
@@ -265,6 +271,8 @@ class IdentificationCore:
         self.active = False
         self.finalized = False  # a managed node after its shutdown transition: main() returns
         self.server = None  # foxglove_server.DashboardServer when foxglove_port > 0
+        self.solver: SolverProcess | None = None  # when solver_process is true
+        self.solver_lost = ""  # why the solver process is gone, when it went
         self._writer: ResultWriter | None = None
         self._outputs: dict[str, Any] = {}
         self.inputs = {s: _Input(s) for s in STREAMS}
@@ -295,6 +303,8 @@ class IdentificationCore:
         self._pending: dict[str, list] = {s: [] for s in STREAMS}
         self._pending_samples = 0
         self.engine = StreamingEngine(config)
+        if self.values["solver_process"]:
+            self.solver = SolverProcess()
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -343,6 +353,9 @@ class IdentificationCore:
         if self.server is not None:
             self.server.stop()
             self.server = None
+        if self.solver is not None:
+            self.solver.close()
+            self.solver = None
         for publisher in self._outputs.values():
             self._destroy_output_publisher(publisher)
         self._outputs = {}
@@ -562,7 +575,7 @@ class IdentificationCore:
             with self._lock:
                 engine = self.engine
                 snapshot = engine.snapshot()
-            outcome = solve_snapshot(snapshot)  # never raises: a failing method gives ok False, status "exception"
+            outcome = self._solve(snapshot)  # never raises: a failing method gives ok False, status "exception"
             if outcome.status == "exception":
                 self.get_logger().error(f"solve failed: {outcome.reason}", throttle_duration_sec=5.0)
             with self._lock:
@@ -571,6 +584,17 @@ class IdentificationCore:
                 stats = engine.stats.copy()
             self._publish(outcome, stats, publish)
             return outcome
+
+    def _solve(self, snapshot: EngineSnapshot) -> SolveOutcome:
+        """``solve_snapshot`` in the solver process, or here when there is none (or it is gone)."""
+        if self.solver is not None:
+            try:
+                return self.solver.solve(snapshot)
+            except RuntimeError as exc:
+                self.get_logger().error(f"solver process lost ({exc}); solving in the node's thread from now on")
+                self.solver.close()
+                self.solver, self.solver_lost = None, str(exc)
+        return solve_snapshot(snapshot)
 
     def _diagnosis_loop(self, stop: threading.Event) -> None:
         """Every ``diagnosis_period`` s: ``diagnose_record`` on the newest ``diagnosis_window``
@@ -687,6 +711,8 @@ class IdentificationCore:
             "excitation_dds_lost": self.inputs["excitation"].dds_lost,
             "response_dds_lost": self.inputs["response"].dds_lost,
             "loop_errors": self.loop_errors,
+            "solver": (f"process {self.solver.pid}" if self.solver is not None
+                       else "thread" + (f" ({self.solver_lost})" if self.solver_lost else "")),
             "window": self.values["window"],
             "method": self.values["method"],
         }

@@ -82,15 +82,13 @@ def result_messages(outcome: SolveOutcome, stamp_s: float, frame_id: str = "") -
     if not outcome.ok or outcome.doc is None:
         return []
     doc, header = outcome.doc, _header(stamp_s, frame_id)
-    markov = doc.get("markov")
-    if markov is None and outcome.result is not None:
-        markov = outcome.result.linear.markov_parameters(2 * outcome.result.linear.order + 1).tolist()
+    markov = list(outcome.markov)
     messages = [
         ("~/model", "std_msgs/msg/String", {"data": model_json(outcome)}),
         ("~/poles", "sensor_msgs/msg/JointState", _roots_state(header, "p", doc["poles"])),
         ("~/zeros", "sensor_msgs/msg/JointState", _roots_state(header, "z", doc["zeros"])),
         ("~/markov", "sensor_msgs/msg/JointState",
-         _joint_state(header, [f"h{i}" for i in range(len(markov or []))], markov or [])),
+         _joint_state(header, [f"h{i}" for i in range(len(markov))], markov)),
     ]
     nonlinearity = doc.get("nonlinearity")
     if nonlinearity and nonlinearity.get("points"):

@@ -48,6 +48,7 @@ Pipeline, per batch of timestamped samples of either stream:
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, fields, replace
@@ -77,6 +78,7 @@ class EngineSnapshot:
     stats: EngineStats
     published: IdentificationResult | None = None  # the model published last (see ``solve_snapshot``)
     reference_std: float = 0.0  # largest input std of the windows behind the published models
+    epoch: int = 0  # changes when the published model is forgotten (new engine, new settings): ``SolverProcess``
 
 
 
@@ -94,7 +96,11 @@ class SolveOutcome:
     stamp: float
     status: str = "ok"  # ok | filling | not_exciting | kept | failed (the method rejected the data) | exception
     input_std: float = float("nan")  # of the window's input
+    markov: tuple[float, ...] = ()  # the model's first 2n + 1 Markov parameters (ok outcomes)
 
+
+
+_EPOCHS = itertools.count(1)
 
 
 class StreamingEngine:
@@ -108,6 +114,7 @@ class StreamingEngine:
         self._stamp = float("nan")
         self._published: IdentificationResult | None = None
         self._reference_std = 0.0
+        self._epoch = next(_EPOCHS)
 
     @property
     def config(self) -> EngineConfig:
@@ -132,6 +139,7 @@ class StreamingEngine:
         new = replace(self._config, **changes).validated()
         old, self._config = self._config, new
         self._published, self._reference_std = None, 0.0  # new settings: the next estimate is published
+        self._epoch = next(_EPOCHS)
         self._aligner.config = new
         if (new.window, new.tau_max, new.forgetting) != (old.window, old.tau_max, old.forgetting):
             self._corr.rebuild(new.window, new.tau_max, new.forgetting)
@@ -186,7 +194,7 @@ class StreamingEngine:
         v, y = self._corr.raw()
         phi_vv, phi_yv, phi_yvv = self._corr.correlations()
         return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
-                              self.stats.copy(), self._published, self._reference_std)
+                              self.stats.copy(), self._published, self._reference_std, self._epoch)
 
     def solve(self) -> SolveOutcome:
         """Solve on the current window (synchronously) and count it in the stats."""
@@ -195,21 +203,28 @@ class StreamingEngine:
         return outcome
 
     def record(self, outcome: SolveOutcome) -> None:
-        """Count a solve (done here or in a worker thread) in the stats."""
+        """Count a solve (done here, in a worker thread or in a ``SolverProcess``) in the stats;
+        an ok outcome becomes the published model."""
+        count_outcome(self.stats, outcome)
         if outcome.ok:
-            self.stats.solves += 1
             self._published = outcome.result
             self._reference_std = max(self._reference_std, outcome.input_std)
-            return
-        self.stats.solve_errors += 1
-        if outcome.status == "not_exciting":
-            self.stats.not_exciting += 1
-        elif outcome.status == "kept":
-            self.stats.kept_published += 1
-        elif outcome.status == "failed":
-            self.stats.solve_failures += 1
-        elif outcome.status == "exception":
-            self.stats.solve_exceptions += 1
+
+
+def count_outcome(stats: EngineStats, outcome: SolveOutcome) -> None:
+    """The counters of ``stats`` that one solve moves."""
+    if outcome.ok:
+        stats.solves += 1
+        return
+    stats.solve_errors += 1
+    if outcome.status == "not_exciting":
+        stats.not_exciting += 1
+    elif outcome.status == "kept":
+        stats.kept_published += 1
+    elif outcome.status == "failed":
+        stats.solve_failures += 1
+    elif outcome.status == "exception":
+        stats.solve_exceptions += 1
 
 
 
@@ -294,7 +309,10 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     if kept:
         return outcome(False, f"kept the published model: it fits the window better ({kept})", cond=cond,
                        status="kept")
-    return outcome(True, "", result, doc, cond)
+    markov = doc.get("markov")
+    if markov is None:
+        markov = result.linear.markov_parameters(2 * result.linear.order + 1).tolist()
+    return replace(outcome(True, "", result, doc, cond), markov=tuple(float(h) for h in markov))
 
 
 

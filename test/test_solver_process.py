@@ -1,0 +1,108 @@
+"""``SolverProcess``: solves in a worker process give the outcomes of in-process solves (the
+published model for the keep check included), replay with it writes the same results, and a
+worker that dies is reported instead of hanging."""
+
+from __future__ import annotations
+
+import os
+import signal
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from hammer_ros.io.bags import bag_duration, parse_stream_spec
+from hammer_ros.io.replay import replay_bag
+from hammer_ros.streaming.config import EngineConfig
+from hammer_ros.streaming.engine import StreamingEngine, solve_snapshot
+from hammer_ros.streaming.solver_process import SolverProcess
+from hammer_ros.tools.bench import feed_engine, hammerstein_record
+
+REPO = Path(__file__).resolve().parents[1]
+FLOAT64_BAG = REPO / "bags" / "float64_cubic_g1.mcap"
+CONFIG = EngineConfig(sample_rate=1000.0, window=2000, tau_max=66, method="cls-markov", mu=30, min_fill=0.25)
+
+
+@pytest.fixture(scope="module")
+def solver():
+    with SolverProcess() as process:
+        yield process
+
+
+def test_a_sequence_of_solves_equals_the_in_process_one(solver):
+    v, y = hammerstein_record(12_000, seed=3)
+    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
+    t = np.arange(v.size) / 1000.0
+    statuses = []
+    for start in range(0, v.size, 400):
+        part = slice(start, start + 400)
+        for engine in (here, there):
+            engine.add_excitation(t[part], v[part])
+            engine.add_response(t[part], y[part])
+        local = here.solve()
+        remote = solver.solve(there.snapshot())
+        there.record(remote)
+        statuses.append(local.status)
+        assert (remote.ok, remote.status, remote.reason) == (local.ok, local.status, local.reason)
+        assert remote.result is None and remote.doc == local.doc and remote.markov == local.markov
+        if local.ok:
+            assert len(local.markov) == len(local.doc["markov"]) > 2 * CONFIG.order
+    assert statuses[0] == "filling" and statuses[-1] == "ok"
+    assert here.stats.solves == there.stats.solves > 10
+
+
+def test_the_worker_keeps_the_published_model_of_the_epoch_for_the_keep_check(solver):
+    """A window whose own estimate is poor (slow coloured output noise over few samples) keeps
+    the model of a clean window: the worker uses the model it made in the same epoch, which never
+    left it, also when both snapshots are in flight at once; a new epoch starts without one."""
+    config = replace(CONFIG, window=1000, tau_max=40, min_fill=0.5)
+    v, y = hammerstein_record(1000, seed=1)
+    clean = feed_engine(config, v, y, chunk=1000).snapshot()
+    slow = np.convolve(np.random.default_rng(2).standard_normal(y.size), 0.97 ** np.arange(200))[: y.size]
+    noisy = replace(feed_engine(config, v, y + 0.3 * np.std(y) * slow, chunk=1000).snapshot(), epoch=clean.epoch)
+    published = solve_snapshot(clean)
+    local = solve_snapshot(replace(noisy, published=published.result, reference_std=published.input_std))
+    assert published.ok and local.status == "kept", local.reason  # the case this test is about
+    solver.submit(clean)
+    solver.submit(noisy)
+    first, second = solver.result(), solver.result()
+    assert first.ok and (second.status, second.reason) == (local.status, local.reason)
+    fresh = solver.solve(replace(noisy, epoch=noisy.epoch + 10_000))  # a reset engine: the estimate is published
+    assert fresh.ok
+
+
+def _messages(path: Path) -> list[tuple[str, int, bytes]]:
+    with open(path, "rb") as f:
+        return [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
+
+
+def test_replay_with_the_solver_process_writes_the_same_results(solver, tmp_path):
+    excitation, response = parse_stream_spec("/cmd:data", "--input"), parse_stream_spec("/response:data", "--output")
+    config = EngineConfig(sample_rate=100.0, window=2000)
+    assert 2.0 * bag_duration(FLOAT64_BAG) > 100  # enough solves to overlap
+    here = replay_bag(FLOAT64_BAG, excitation, response, config, 2.0, out=tmp_path / "here.mcap")
+    there = replay_bag(FLOAT64_BAG, excitation, response, config, 2.0, out=tmp_path / "there.mcap", solver=solver)
+    a, b = here.document(), there.document()
+    a.pop("wall_s"), b.pop("wall_s")
+    assert a == b and a["solves"] > 100
+    ma, mb = _messages(tmp_path / "here.mcap"), _messages(tmp_path / "there.mcap")
+    assert [(t, s) for t, s, _ in ma] == [(t, s) for t, s, _ in mb]
+    differ = {t for (t, _, x), (_, _, z) in zip(ma, mb) if x != z}
+    assert differ <= {"/diagnostics", "/hammer_ros/dashboard/diagnostics"}  # the solve times
+    assert any(t == "/hammer_ros/model" for t, _, _ in ma)
+
+
+def test_a_worker_that_dies_is_reported_not_waited_for():
+    process = SolverProcess()
+    try:
+        v, y = hammerstein_record(2000, seed=2)
+        snapshot = feed_engine(CONFIG, v, y, chunk=1000).snapshot()
+        assert process.solve(snapshot).ok
+        os.kill(process._process.pid, signal.SIGKILL)
+        process._process.join(10)
+        with pytest.raises(RuntimeError, match=r"solver process exited \(exit code -9\)"):
+            process.solve(snapshot)
+    finally:
+        process.close()
