@@ -45,10 +45,12 @@ def test_bench_sections_run_on_tiny_sizes():
     assert all(r["p50"] <= r["p99"] for r in solve if "p50" in r)
     loaded = [r for r in solve if "ingest_rate" in r]  # the mu-Markov solve beside ingestion: thread, process
     assert all("reference" in r for r in solve if r["method"].startswith("cls") and "p50" in r and r not in loaded)
-    assert [r["method"] for r in loaded] == ["cls-markov", "cls-markov (process)"]
+    assert [r["method"] for r in loaded] == ["cls-markov (thread)", "cls-markov (process)", "end to end"]
     for row in loaded:
         assert row["mu"] == 30 and row["p50"] > 0
         assert 0 < row["ingest_rate"] <= 0.6 * row["ingest_limit"]  # capped at half its limit
+    there, end_to_end = loaded[1:]
+    assert there["p99"] == there["solve_p99"] and end_to_end["p99"] >= end_to_end["solve_p99"]  # the hand-back costs
     peers = sections["peers"].rows
     g1 = {r["method"]: r for r in peers if r["case"].startswith("G1")}
     assert g1["cls-markov"]["nrmse"] < 0.3  # the identified model simulates the plant
@@ -76,3 +78,27 @@ def test_fleet_section_runs_on_tiny_sizes():
     assert row["plain"] > 0
     assert "8 bags" in row["case"]
     assert any(g["goal"].startswith("fleet") for g in bench.goals({"fleet": section}).rows)
+
+
+def test_the_rate_ladder_brackets_each_limit_and_narrows_it():
+    """The node section's search (``_zero_loss_limits``) on a stand-in for ``ros_rate_probe``
+    whose subscribers lose samples above fixed limits: each figure is a lossless rate below its
+    limit with a lossy one at most x1.15 above (two geometric midpoints of a x1.5-1.7 step), the
+    bare subscriber is followed past the plan's ladder, and no subscriber runs above its first
+    loss."""
+    limits = {"node": 9_200.0, "bare": 21_000.0, "foxglove": 7_400.0}
+    names = {"node": "hammer_ros node", "bare": "bare rclpy", "foxglove": "hammer_ros node + foxglove client"}
+    runs, calls = [], []
+
+    def probe(rates, batch, seconds, subscribers):
+        calls.append(rates[0])
+        runs.extend((who, rates[0]) for who in subscribers)
+        return [{"subscriber": names[who], "messages": rates[0] * seconds, "publish_seconds": seconds,
+                 "lost": 0 if rates[0] <= limits[who] else 100} for who in subscribers]
+
+    best, first_loss, tried = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
+    for who, limit in limits.items():
+        assert best[who] <= limit < first_loss[who] <= 1.15 * best[who], (who, best[who], first_loss[who])
+        lossy = [r for w, r in runs if w == who and r > limit]
+        assert len(lossy) <= 1 + bench.REFINE_STEPS, (who, lossy)
+    assert first_loss["bare"] > 8500.0 and len(tried) == len(calls)

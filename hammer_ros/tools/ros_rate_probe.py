@@ -293,9 +293,15 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
 
 
-def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False) -> list[dict]:
-    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate;
-    with ``foxglove`` also the node with its Foxglove server on and one client connected."""
+SUBSCRIBERS = ("bare", "node", "foxglove")
+
+
+def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False,
+          subscribers: tuple[str, ...] = ("bare", "node")) -> list[dict]:
+    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate and
+    each of ``subscribers`` (SUBSCRIBERS: the bare subscriber, the node, the node with its
+    Foxglove server on and one client connected); ``foxglove`` adds the last."""
+    chosen = set(subscribers) | ({"foxglove"} if foxglove else set())
     prepare_ros_environment()
     rows = []
     with DomainLease() as lease:
@@ -311,7 +317,8 @@ def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bo
         executor.add_node(node)
         try:
             for rate in rates:
-                for measure, options in ((_bare, {}), (_node, {}), *([(_node, {"foxglove": True})] * foxglove)):
+                runs = {"bare": (_bare, {}), "node": (_node, {}), "foxglove": (_node, {"foxglove": True})}
+                for measure, options in (runs[who] for who in SUBSCRIBERS if who in chosen):
                     row = measure(node, executor, env, rate, seconds, batch, **options)
                     row.update(rate_msgs_per_s=rate, batch=batch, samples_per_s=rate * batch,
                                lost=row["messages"] * batch - row["received"])
