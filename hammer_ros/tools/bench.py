@@ -537,10 +537,10 @@ LOADED_SHARE = 0.5  # the ingest rate beside the loaded solves, a share of its m
 
 
 def _ingest_one_by_one(config: EngineConfig, rate: float | None, seconds: float, stop: threading.Event,
-                       counted: list[float]) -> None:
+                       counted: list[float], started: threading.Event | None = None) -> None:
     """Feed a fresh engine one sample of each stream per call (a Float64 node's hand-off) at
     ``rate`` samples/s (None: as fast as it can) until ``stop`` or ``seconds``; the rate it
-    reached goes to ``counted``."""
+    reached goes to ``counted``; ``started`` is set once the first sample is in."""
     engine = StreamingEngine(config)
     v, y = hammerstein_record(20_000, seed=5)
     start, k = time.perf_counter(), 0
@@ -552,6 +552,8 @@ def _ingest_one_by_one(config: EngineConfig, rate: float | None, seconds: float,
             engine.add_excitation(t, v[i : i + 1])
             engine.add_response(t, y[i : i + 1])
             k += 1
+            if started is not None and k == 1:
+                started.set()
         if rate is not None:
             time.sleep(0.001)
     counted.append(k / max(time.perf_counter() - start, 1e-9))
@@ -581,10 +583,11 @@ def loaded_solve_latencies(case: SolveCase, window: int, repeats: int, in_proces
         first, ok, _ = solve()  # the warm-up (the worker's imports), reported apart
         if not ok:
             return {"error": "the warm-up solve failed"}
-        stop, counted = threading.Event(), []
+        stop, counted, started = threading.Event(), [], threading.Event()
         feeder = threading.Thread(target=_ingest_one_by_one,
-                                  args=(config, LOADED_SHARE * limit, 600.0, stop, counted), daemon=True)
+                                  args=(config, LOADED_SHARE * limit, 600.0, stop, counted, started), daemon=True)
         feeder.start()
+        started.wait(5.0)  # the solves are timed beside an ingestion that runs
         try:
             timed = [solve() for _ in range(repeats)]
         finally:
