@@ -649,8 +649,8 @@ def _choose_tails(theta: np.ndarray, v: np.ndarray, y: np.ndarray, fit, cost) ->
     that side), its map continued beyond the range of the rest by each of TAILS, and scored on
     the held-back quarter; a tail other than ``slope`` is kept when it lowers that error by
     TAIL_MARGIN. Returns ((v range), (f tails), (y range), (h tails)) of the whole record."""
-    ranges = [(float(v.min()), float(v.max())), (float(y.min()), float(y.max()))]
-    chosen = [["slope", "slope"], ["slope", "slope"]]
+    v_range, f_tails, y_range, h_tails = _slope_tails(v, y)
+    ranges, chosen = [v_range, y_range], [list(f_tails), list(h_tails)]
     fits = {}
     for m, x in enumerate((v, y)):
         for side in (0, 1):
