@@ -9,9 +9,16 @@ Instead the samples of each stream are *counted*:
 
 where r_m is the receive time of message m and i_m the index of its last sample (the batch
 convention: the last sample of a message is the newest one). ``base`` is set by the least
-delayed message, so jitter and bursts never move a sample. Stamps are rounded to one grid shared
-by all streams (anchored at the first stamp issued): an excitation and a response published
-together land on the same grid point even when they arrive a fraction of a period apart.
+delayed message, so jitter and bursts never move a sample. Stamps lie on one grid shared by all
+streams, anchored at the first stamp issued, by the *reference* stream (the first one stamped).
+A stream's place on the grid is a whole number of periods: for the reference, its base from the
+anchor; for another stream, its base from the reference's base. Both are rounded with
+hysteresis (a place changes only when the base moves more than ``HYSTERESIS`` periods past the
+half-way point), so an excitation and a response published together, whose bases differ by a
+small fraction of a period, always land on the same grid point: rounding each base on its own
+would split them for as long as the bases straddle a half period, a one-sample misalignment
+that the identification cannot tell from the plant. A move of the reference's base moves every
+stream with it.
 
 A stall of the subscriber (messages queued, then delivered in a burst) moves nothing. A receive
 time more than ``resync`` seconds after the count predicts (the publisher paused, or samples were
@@ -33,6 +40,7 @@ from collections import deque
 import numpy as np
 
 INFER_SECONDS = 2.0
+HYSTERESIS = 0.25  # periods past the half-way point before a stream's place on the grid moves
 INFER_MIN_MESSAGES = 16
 
 
@@ -40,14 +48,23 @@ def _round_significant(x: float, digits: int = 3) -> float:
     return round(x, digits - 1 - int(math.floor(math.log10(abs(x)))))
 
 
+def _round_with_hysteresis(x: float, current: int | None) -> int:
+    """``round(x)``, except that ``current`` stays while ``x`` is within 0.5 + HYSTERESIS of it."""
+    if current is not None and abs(x - current) <= 0.5 + HYSTERESIS:
+        return current
+    return round(x)
+
+
 class _CountedStream:
     def __init__(self) -> None:
         self.count = 0  # samples stamped since the last (re)start
         self.history: deque[tuple[float, float]] = deque()  # (receive time, base candidate), candidates increasing
+        self.place: int | None = None  # periods from the anchor (reference) or from the reference's base
 
     def restart(self) -> None:
         self.count = 0
         self.history.clear()
+        self.place = None
 
 
 class ArrivalStamper:
@@ -60,6 +77,7 @@ class ArrivalStamper:
         self.restarts = 0
         self._streams: dict[str, _CountedStream] = {}
         self._anchor: float | None = None
+        self._reference: _CountedStream | None = None  # the first stream stamped: it places the others
         self._inference: list[tuple[float, int]] = []  # (receive time, cumulative samples) of one stream
         self._inference_stream: str | None = None
 
@@ -94,11 +112,20 @@ class ArrivalStamper:
         history.append((receive_time, candidate))
         while history[0][0] < receive_time - self.horizon:
             history.popleft()
-        raw = history[0][1] + s.count * period
+        base = history[0][1]
+        if self._reference is None:
+            self._reference, self._anchor = s, base + s.count * period
+        reference = self._reference
+        reference_base = reference.history[0][1]
+        if s is reference:
+            s.place = _round_with_hysteresis((base - self._anchor) * self.rate, s.place)
+            place = s.place
+        else:
+            s.place = _round_with_hysteresis((base - reference_base) * self.rate, s.place)
+            place = s.place + (reference.place or 0)
+        first = self._anchor + (place + s.count) * period
         s.count += count
-        if self._anchor is None:
-            self._anchor = raw
-        return self._anchor + round((raw - self._anchor) * self.rate) * period
+        return first
 
     def _infer(self, stream: str, receive_time: float, count: int) -> bool:
         if self._inference_stream is None:
