@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import signal
 
-from hammer_ros.diagnosis.chain import MIN_STEP_GAIN, constant_beyond, follow_output_nonlinearity
+from hammer_ros.diagnosis.chain import MIN_STEP_GAIN, constant_beyond, drifts, follow_output_nonlinearity
 from hammer_ros.diagnosis.diagnose import diagnose
 from hammer_ros.diagnosis.extensions import ExtendedModel
-from hammer_ros.diagnosis.split import split_record
+from hammer_ros.diagnosis.split import Split, split_record
 from hammer_ros.identification.linear import LinearModel
 from hammer_ros.identification.static_maps import PiecewiseLinearMap
 
@@ -54,6 +55,26 @@ def test_a_clean_record_has_no_chain():
     v, y = _record(6, 3000, saturate=False, path=False)
     doc = diagnose(split_record(v, y, 0.7), order=3).diagnosis.to_json()
     assert doc["cause"] == "none" and doc["steps"] == [] and doc["chain_stopped"] is None
+
+
+def test_a_drifting_offset_is_a_further_step_with_its_slope():
+    """A saturated Hammerstein branch whose output drifts by 0.3 of its standard deviation over
+    the record: the saturation is named first, then the drift (``time_varying``), with a slope
+    near the true one (the first step's fit absorbs a little of it) and a large gain; a
+    separate validation record has no time axis to continue, so no drift is tried there."""
+    v, y = _record(2, 4000, saturate=True, path=False)
+    slope = 0.3 * np.std(y) / y.size
+    result = diagnose(split_record(v, y + slope * np.arange(y.size), 0.7), order=3)
+    doc = result.diagnosis.to_json()
+    causes = [s["cause"] for s in doc["steps"]]
+    assert causes[:2] == ["output_nonlinearity", "time_varying"], doc["steps"]
+    assert doc["steps"][1]["gain"] > 2.0
+    assert result.chain.models[1].details["drift"]["per_sample"] == pytest.approx(slope, rel=0.25)
+    clean = diagnose(split_record(v, y, 0.7), order=3).diagnosis.to_json()
+    assert "time_varying" not in [s["cause"] for s in clean["steps"]], clean["steps"]
+    separate = Split(v[:2800], y[:2800] + slope * np.arange(2800), v[2800:], y[2800:] + slope * np.arange(2800, 4000),
+                     continuous=False)
+    assert not drifts(separate, result.chain.models[0], 0)
 
 
 def test_an_output_map_chooses_a_constant_continuation_for_a_saturation():

@@ -12,6 +12,12 @@ express, and each supported follow-up is fitted on the estimation data around M_
 | ``parallel_path`` | y = M_k(u) + G[u] | equation error, then simulation error |
 | ``unmodeled_dynamics`` | y = H[M_k(u)], H linear of order 2 | simulation error from H = 1 |
 | ``input_dynamics`` | y = M_k(L_p[u]), L_p = (1 - p) / (1 - p q^-1) | scan of p, then a scalar search |
+| ``time_varying`` | y = M_k(u) + c_0 + c_1 k / N (a drifting offset) | least squares (linear in c) |
+
+The drift is a follow-up of one record split in two only (``Split.continuous``): k counts the
+samples from the start of the estimation data, so the validation samples continue its time
+axis; a separate validation record has no known place on it. Its signature is tested on the
+residual of the whole record (``drifts``), the others' on the validation residual.
 
 The follow-up with the largest validation gain rms_k / rms_(k+1) is the next step when that gain
 is at least ``MIN_STEP_GAIN``; the chain stops when no signature is significant, when no
@@ -29,10 +35,11 @@ import numpy as np
 from scipy import signal
 from scipy.optimize import minimize_scalar
 
+from ..identification.regression import solve_least_squares
 from ..identification.result import rms_error
 from ..identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
-from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test
+from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test, trend_test
 from .extensions import NUMERICAL_FAILURES, ExtendedModel, failure_reason, linear_fit, map_on, map_plot
 from .hammerstein import quantile_partition
 from .split import Split
@@ -88,6 +95,18 @@ def follow_up_signatures(v: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
     }
 
 
+def drifts(split: Split, model: ExtendedModel, skip: int) -> bool:
+    """The signature of a drift: on one record split in two, the level of the model's free-run
+    residual of the *whole* record moves along it (``trend_test``; a drift shows most as the
+    change of the residual's level from the estimation to the validation samples, which the
+    validation residual alone cannot show)."""
+    if not split.continuous:
+        return False
+    x = model.simulate(split.v_all)
+    t_value, critical = trend_test(split.y_all - x, np.column_stack([np.ones_like(x), x]), skip)
+    return t_value > critical
+
+
 def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: int) -> Chain:
     """The chain that starts with the extension ``first`` (see the module docstring)."""
     first_rms = rms_error(split.y_val, first.validation_output)
@@ -114,6 +133,8 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
                                                   val_skip)
             if f_value > critical:
                 supported.append(cause)
+        if drifts(split, model, skip):
+            supported.append("time_varying")
         if not supported:
             return stop("no signature of a further effect in the validation residual")
         fits = {}
@@ -262,9 +283,29 @@ def follow_input_dynamics(split: Split, model: ExtendedModel, skip: int) -> Exte
                          {"input_pole": p}, (), simulate)
 
 
+def follow_drift(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
+    """y = M(u) + c_0 + c_1 k / N, k = 0, 1, ... from the start of the estimation data (N of
+    them): an offset that drifts along the record (a sensor, a leak, the temperature), c by
+    least squares on the estimation residual. One record split in two only: the validation
+    samples continue the time axis (k = N, N + 1, ...)."""
+    if not split.continuous:
+        raise ValueError("a drift needs the validation samples to follow the estimation samples in time")
+    inner, n = model.simulate, split.n_est
+    ramp = np.column_stack([np.ones(n), np.arange(n) / n])
+    c = solve_least_squares(ramp[skip:], (split.y_est - inner(split.v_est))[skip:])
+
+    def simulate(u: np.ndarray) -> np.ndarray:
+        return inner(u) + c[0] + c[1] * np.arange(np.size(u)) / n
+
+    details = {"drift": {"offset": float(c[0]), "per_sample": float(c[1] / n)}}
+    return ExtendedModel("time_varying", f"{model.structure} + drifting offset", split.validation_output(simulate),
+                         details, (), simulate)
+
+
 FOLLOW_UPS: dict[str, Callable[[Split, ExtendedModel, int], ExtendedModel]] = {
     "output_nonlinearity": follow_output_nonlinearity,
     "parallel_path": follow_parallel_path,
     "unmodeled_dynamics": follow_unmodeled_dynamics,
     "input_dynamics": follow_input_dynamics,
+    "time_varying": follow_drift,
 }

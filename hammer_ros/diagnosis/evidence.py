@@ -38,6 +38,7 @@ from .hammerstein import HammersteinModel
 from .residual_tests import Evidence
 
 LEVEL = 0.99
+TREND_BLOCKS = 10  # blocks of the record whose mean levels the drift test compares
 PREWHITEN_ORDER = 10
 DYNAMIC_POLES = (0.5, 0.8, 0.9, 0.95, 0.98)
 FIR_LAGS = 12
@@ -98,6 +99,24 @@ def partial_f_test(e: np.ndarray, nuisance: np.ndarray, columns: np.ndarray, ski
         return 0.0, np.inf, 0.0
     f_value = ((ssr0 - ssr1) / q) / (ssr1 / dof)
     return float(f_value), float(stats.f.ppf(LEVEL, q, dof)), max(0.0, 1.0 - raw1 / raw0) if raw0 > 0 else 0.0
+
+
+def trend_test(e: np.ndarray, nuisance: np.ndarray, skip: int, blocks: int = TREND_BLOCKS) -> tuple[float, float]:
+    """(|t|, 99 % critical value) of the slope of the residual's level along the record: e less
+    its least-squares fit on ``nuisance`` is cut into ``blocks`` consecutive blocks, and the
+    slope of the block means over the block index is t-tested (blocks - 2 degrees of freedom).
+    Block means are nearly independent when the residual's correlation time is shorter than a
+    block, which a sample-wise test of a ramp (prewhitened, ``partial_f_test``) cannot rely on:
+    whitening a slowly varying residual differences the ramp away."""
+    e, nuisance = e[skip:], nuisance[skip:]
+    if e.size < 2 * blocks:
+        return 0.0, np.inf
+    r = e - nuisance @ solve_least_squares(nuisance, e)
+    means = np.array([part.mean() for part in np.array_split(r, blocks)])
+    fit = stats.linregress(np.arange(blocks), means)
+    if not np.isfinite(fit.stderr) or fit.stderr <= 0:
+        return 0.0, np.inf
+    return abs(float(fit.slope / fit.stderr)), float(stats.t.ppf(1.0 - (1.0 - LEVEL) / 2, blocks - 2))
 
 
 def hinges(x: np.ndarray, count: int = 5) -> np.ndarray:
