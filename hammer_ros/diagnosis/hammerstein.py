@@ -219,9 +219,14 @@ def free_breakpoints(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> H
 def prune_breakpoints(model: HammersteinModel, v: np.ndarray) -> HammersteinModel:
     """The same map on the data without the breakpoints that leave an interval empty (free
     breakpoints can wander out of the data or onto each other): slopes and offset re-fitted to
-    the map's values on v, which they reproduce exactly between the kept breakpoints."""
-    kept = drop_empty_intervals(v, model.partition)
-    if kept.size == model.partition.size:
+    the map's values on v, which they reproduce exactly between the kept breakpoints. When none
+    is left (a two-valued input, e.g. a PRBS, whose one breakpoint wandered past a level), one
+    breakpoint midway between the input's extremes holds the map."""
+    try:
+        kept = drop_empty_intervals(v, model.partition)
+    except IdentificationError:
+        kept = drop_empty_intervals(v, np.array([0.5 * (float(np.min(v)) + float(np.max(v)))]))
+    if np.array_equal(kept, model.partition):
         return model
     primary = max(1, kept.size // 2)
     basis = np.column_stack([point_slope_basis(v, kept, primary), np.ones(v.size)])
