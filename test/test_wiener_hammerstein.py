@@ -164,8 +164,9 @@ def test_a_two_valued_input_is_diagnosed_and_its_rectified_output_named():
     coupled-drives record) into a lightly damped G, measured as |G u|, 8 draws: the baseline's
     one breakpoint stays between the two levels (a free breakpoint that wandered past a level
     left no partition, and 5 of these 8 diagnoses failed with "the signal takes a single
-    value"), and the rectifier is named in most draws (5 of 8 measured; the others: `none`
-    twice, where the Wiener fit stalls, and `periodic_disturbance` once)."""
+    value"), and the rectifier is named in most draws (7 of 8 measured, 5 before the Wiener
+    model's random fronts, whose best start finds G where the BLA and the L-N-L fit's G1
+    stall; the other: `periodic_disturbance`)."""
     g = LinearModel.from_zeros_poles([], [0.9 * np.exp(0.3j), 0.9 * np.exp(-0.3j), 0.7], 1.0)
     named = 0
     for seed in range(8):
@@ -177,7 +178,7 @@ def test_a_two_valued_input_is_diagnosed_and_its_rectified_output_named():
         assert partition.size == 1 and -1.0 < partition[0] < 1.0, (seed, partition)
         d = result.diagnosis
         named += d.cause == "output_nonlinearity" and d.gain >= 1.15
-    assert named >= 4
+    assert named >= 6
 
 
 def test_the_nested_wiener_model_recovers_g1_from_a_front_start_where_the_bla_vanishes():

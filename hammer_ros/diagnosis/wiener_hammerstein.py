@@ -555,22 +555,25 @@ def fit_nested_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
 
 
 def fit_nested_wiener(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0, segments: int | None = None,
-                      iterations: int = 200, front: LinearModel | None = None) -> WienerHammersteinFit:
+                      iterations: int = 200, front: LinearModel | None = None,
+                      bla: LinearModel | None = None) -> WienerHammersteinFit:
     """The Wiener model nested in the L-N-L structure, G2 = 1: y = f(G1[u]), G1 started from
     ``front`` or else from the BLA of ``order`` (Bussgang: the BLA of a Wiener system is c G1;
     an even map makes it vanish, hence the other start), scaled to the input's spread, the map
     on quantiles of G1[u], refined by the same Levenberg-Marquardt. All dynamics before a static
     output map (a sensor, a rectifier, a clamp after the plant): what the L-N-L model gains over
-    it is the back filter's."""
-    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=True, front=front)
+    it is the back filter's. ``bla``: the BLA when already known (it also sets the samples
+    left out as the transient, so fits from several fronts compare on the same samples)."""
+    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=True, front=front, bla=bla)
 
 
 def _fit_nested(u: np.ndarray, y: np.ndarray, order: int, delay: int, segments: int | None, iterations: int,
-                dynamics_first: bool, front: LinearModel | None = None) -> WienerHammersteinFit:
+                dynamics_first: bool, front: LinearModel | None = None,
+                bla: LinearModel | None = None) -> WienerHammersteinFit:
     """The L-N-L model with one block the identity and the other the BLA (or ``front``),
     refined (see the two callers)."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
-    bla = fit_output_error(u, y, order, delay)
+    bla = fit_output_error(u, y, order, delay) if bla is None else bla
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
     identity = LinearModel(np.ones(1), np.ones(1))
