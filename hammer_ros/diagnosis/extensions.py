@@ -146,9 +146,10 @@ class Context:
         """The Wiener model y = f(G1[v]) (``fit_nested_wiener``, the baseline's order and delay)
         from the BLA, from the L-N-L model's G1 (which finds an even map's dynamics where the
         BLA vanishes) and from the best of WIENER_RANDOM_FRONTS random G1 (``random_front``)
-        by the error of its start (the map fitted, no iteration); the one with the smallest
-        estimation error; or why not. The random fronts matter where both other starts stall,
-        e.g. a rectified output of a relative-degree-3 plant under a PRBS (2 of 8 draws)."""
+        by the error of its start (the map fitted, no iteration), when that beats the start
+        error of the other two; the one with the smallest estimation error; or why not. The
+        random fronts matter where both other starts stall, e.g. a rectified output of a
+        relative-degree-3 plant under a PRBS (2 of 8 draws)."""
         base, s = self.baseline, self.split
         lnl = self.wiener_hammerstein
         fronts = [None] + ([] if isinstance(lnl, Exception) else [lnl.model.front])
@@ -160,9 +161,11 @@ class Context:
             return fit_nested_wiener(s.v_est, s.y_est, base.order, base.delay, self.map_segments, iterations,
                                      front, bla)
 
+        given = np.inf  # the smallest start error of the BLA and L-N-L starts
         for front in fronts:
             try:
                 fits.append(fit(front))
+                given = min(given, fit(front, 0).rms)
             except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
                 error_seen = error
         rng = np.random.default_rng(0)
@@ -172,9 +175,10 @@ class Context:
                 screened.append((fit(front, 0).rms, front))
             except (IdentificationError, np.linalg.LinAlgError, ValueError):
                 continue
-        if screened:
+        best = min(screened, key=lambda pair: pair[0], default=(np.inf, None))
+        if best[0] < given:
             try:
-                fits.append(fit(min(screened, key=lambda pair: pair[0])[1]))
+                fits.append(fit(best[1]))
             except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
                 error_seen = error
         return min(fits, key=lambda fit: fit.rms) if fits else error_seen
