@@ -85,6 +85,7 @@ MAX_ORDER = 8
 OUTPUT_MAP_BREAKPOINTS = 6
 PATH_ORDER = 2  # order of the parallel path
 IMPULSE_LENGTH = 400
+WIENER_RANDOM_FRONTS = 12  # random G1 of the Wiener model, screened by their start's error; the best is refined
 NESTED_MARGIN = 1.05  # the L-N-L model's validation gain over its nested Hammerstein model (as diagnose's MIN_GAIN)
 
 
@@ -367,7 +368,6 @@ def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
 
 # --------------------------------------------------------------------------- output feedback
 
-WIENER_RANDOM_FRONTS = 12  # random G1 of the Wiener model, screened by their start's error; the best is refined
 SCREENED_STARTS = 6  # the PLLS and baseline starts and the random ones with the smallest simulation error
 SCREEN_ITERATIONS = 6  # LM iterations of every screened start before the best ones are refined to the end
 FEEDBACK_ITERATIONS = 40
