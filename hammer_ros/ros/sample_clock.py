@@ -114,7 +114,7 @@ class ArrivalStamper:
             history.popleft()
         base = history[0][1]
         if self._reference is None:
-            self._reference, self._anchor = s, base + s.count * period
+            self._reference, self._anchor = s, base  # its first stamp: count 0
         reference = self._reference
         reference_base = reference.history[0][1]
         if s is reference:
@@ -122,7 +122,7 @@ class ArrivalStamper:
             place = s.place
         else:
             s.place = _round_with_hysteresis((base - reference_base) * self.rate, s.place)
-            place = s.place + (reference.place or 0)
+            place = s.place + reference.place  # set: the reference was stamped first
         first = self._anchor + (place + s.count) * period
         s.count += count
         return first
