@@ -60,7 +60,7 @@ def summary(d: Diagnosis) -> str:
              f"cause     {d.cause} (confidence {d.confidence:.2f}): {MEANING[d.cause]}"]
     if d.extended is not None:
         e = d.extended
-        lines.append(f"extended  {EXTENSION[d.cause]}")
+        lines.append(f"extended  {d.steps[0].structure if d.steps else EXTENSION[d.cause]}")
         lines.append(f"          validation rms {e.rms:.4g}, fit {e.fit_percent:.1f} %, gain (rms ratio) {d.gain:.3f}")
         if len(d.steps) > 1:
             lines.append("chain     " + " -> ".join(f"{s.cause} (x{s.gain:.3f})" for s in d.steps))

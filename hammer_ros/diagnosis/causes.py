@@ -19,7 +19,8 @@ MEANING = {
 }
 
 EXTENSION = {
-    "output_feedback": "Hammerstein / non-linear feedback y = G[f(u) - h(y)] (PLLS, paper 001)",
+    "output_feedback": "Hammerstein / non-linear feedback y = G[f(u) - h(y)] (PLLS, paper 001), or two storages in "
+                       "series, each with a level-dependent outflow",
     "parallel_path": "feedforward y = G1[F(u)] + G2[u] (Billings-Fakhouri, paper 003)",
     "output_nonlinearity": "Hammerstein-Wiener y = N(G[F(u)])",
     "backlash": "play operator of estimated width before the static map, y = G[F(P_w(u))]",

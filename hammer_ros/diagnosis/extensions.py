@@ -33,6 +33,7 @@ from ..identification.simulate import play_operator, simulate_hammerstein_feedba
 from ..identification.simulation_error import (
     preroll_simulate,
     refine,
+    refine_best_start,
     settling_samples,
     stabilised_denominator,
     steady_state_filter,
@@ -51,6 +52,7 @@ from .hammerstein import (
     transient_samples,
 )
 from .split import INITIAL_SAMPLES, Split, rest_input
+from .storage_cascade import CascadeLayout, cascade_starts
 from .wiener_hammerstein import (
     WienerHammersteinFit,
     essential_order,
@@ -371,6 +373,8 @@ def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
 SCREENED_STARTS = 6  # the PLLS and baseline starts and the random ones with the smallest simulation error
 SCREEN_ITERATIONS = 6  # LM iterations of every screened start before the best ones are refined to the end
 FEEDBACK_ITERATIONS = 40
+STORAGE_CASCADE = ("two storages in series: x1+ = x1 + f(u) - h1(x1), x2+ = x2 + g(x1+) - h2(x2), y = x2 "
+                   "(non-linear feedback of both levels)")
 KEPT_STARTS = 2  # starts refined to the end
 TAIL_ITERATIONS = 10  # LM iterations of the fit without the held-back quarter (tail choice)
 TAIL_MARGIN = 0.02  # a tail other than the last slope must lower the held-back error by this share
@@ -557,7 +561,13 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     are refined to the end and the best on the estimation data is kept. Then the tails of f and
     h (``_choose_tails``) are chosen on held-back estimation data; when the chosen tails drive
     the loop unstable on the validation input (its output alone decides nothing), both maps
-    continue with their last slopes."""
+    continue with their last slopes.
+
+    A second form competes when the baseline is of order 2: two first-order storages in series,
+    each with its own level-dependent outflow (``storage_cascade``: the lower of two tanks feels
+    the upper tank's outflow, a function of a level the output does not carry), started from
+    the baseline's poles in both orders and from random ones, refined the same way; the form
+    with the smaller simulation error on the estimation data is kept (``form`` in the details)."""
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     delay = max(base.delay, 1)
@@ -634,13 +644,18 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
         theta = refine(lambda t: run(t)[keep], theta, y[keep], iterations)
         return theta, cost(theta, keep)
 
-    ranked = sorted(starts[deterministic:], key=lambda t: cost(t, everything))
-    screened = [fit(t, SCREEN_ITERATIONS) for t in starts[:deterministic] + ranked[: SCREENED_STARTS - deterministic]]
-    screened.sort(key=lambda tc: tc[1])
-    finished = [fit(t, FEEDBACK_ITERATIONS) for t, c in screened[:KEPT_STARTS] if np.isfinite(c)]
-    if not finished:
+    schedule = (SCREENED_STARTS, SCREEN_ITERATIONS, KEPT_STARTS, FEEDBACK_ITERATIONS)
+    _, theta, loop_cost = refine_best_start([(run, t) for t in starts], y, deterministic, *schedule)
+    cascade = cascade_starts(base, f_part, v, level, preroll, delay, random_starts(v.size))
+    if cascade:
+        i, cascade_theta, cascade_cost = refine_best_start([(r, t) for _, r, t in cascade], y, 2, *schedule)
+        if cascade_cost < loop_cost:
+            try:
+                return _storage_cascade_model(s, cascade[i][0], cascade_theta, preroll, v, y)
+            except NotFitted:
+                pass  # the loop's model, when it does not diverge too
+    if not np.isfinite(loop_cost):
         raise NotFitted("the simulation of every start of the loop diverges on the estimation data")
-    theta = min(finished, key=lambda tc: tc[1])[0]
     a, b, f_fit, h_fit = layout.unpack(theta[1:])
     # the chosen tails, or the last slopes when those drive the loop unstable
     for tails in (_choose_tails(theta, v, y, fit, cost), _slope_tails(v, y)):
@@ -653,12 +668,37 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     if diverges:
         raise NotFitted("the fitted loop diverges on the validation input")
     maps = (map_plot("f (input map)", f_map, v), map_plot("h (feedback map; its linear part is in A)", h_map, y))
-    details = {"feedback_breakpoints": h_part.tolist(), "starts": len(starts), "initial_input": float(theta[0]),
+    details = {"form": "loop", "feedback_breakpoints": h_part.tolist(), "starts": len(starts),
+               "initial_input": float(theta[0]),
                "a": a.tolist(), "b": b.tolist(),
                "tails": {"f": dict(zip(("left", "right"), tails[1])), "h": dict(zip(("left", "right"), tails[3]))},
                **_order_details(replace(base, a=a, b=b))}
     return ExtendedModel("output_feedback", "hammerstein / non-linear feedback (PLLS)", output, details, maps,
                          simulate)
+
+
+def _storage_cascade_model(split: Split, layout: CascadeLayout, theta: np.ndarray, preroll: int,
+                           v: np.ndarray, y: np.ndarray) -> ExtendedModel:
+    """The extension of ``output_feedback`` as two storages in series (``storage_cascade``),
+    simulated from rest at the input's first value like the loop."""
+    f_map, h1, g, h2 = layout.maps(theta[1:])
+
+    def simulate(u: np.ndarray) -> np.ndarray:
+        return layout.simulate(theta[1:], np.asarray(u, dtype=float), float(u[0]), preroll)
+
+    output = split.validation_output(simulate)
+    if not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y):
+        raise NotFitted("the fitted storages diverge on the validation input")
+    span = np.ptp(layout.x_part) or 1.0
+    levels = np.array([layout.x_part[0] - 0.5 * span, layout.x_part[-1] + 0.5 * span])
+    maps = (map_plot("f (inflow of the first storage)", f_map, v),
+            map_plot("h1 (outflow of the first storage)", h1, levels),
+            map_plot("g (inflow of the second storage, from the first level)", g, levels),
+            map_plot("h2 (outflow of the second storage: the output's feedback)", h2, y))
+    details = {"form": "storage_cascade", "initial_input": float(theta[0]), "delay": layout.delay,
+               "first_level_breakpoints": layout.x_part.tolist(), "feedback_breakpoints": layout.y_part.tolist(),
+               "tails": {"f": {"left": "slope", "right": "slope"}, "h": {"left": "slope", "right": "slope"}}}
+    return ExtendedModel("output_feedback", STORAGE_CASCADE, output, details, maps, simulate)
 
 
 def _held_back(x: np.ndarray, side: int, parts: int = 4) -> slice:

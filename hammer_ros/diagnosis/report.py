@@ -72,7 +72,7 @@ def _verdict(run: DiagnosisRun) -> str:
                 f"Baseline validation fit {d.baseline.fit_percent:.1f} %, RMS {d.baseline.rms:.4g}.")
         return f"<div class='verdict none'>{text}</div>"
     text = (f"<b>Cause: {d.cause}</b> (confidence {d.confidence:.2f}): {html.escape(MEANING[d.cause])}.<br>"
-            f"Extended model: {html.escape(EXTENSION[d.cause])}.<br>"
+            f"Extended model: {html.escape(d.steps[0].structure if d.steps else EXTENSION[d.cause])}.<br>"
             f"Validation RMS {d.baseline.rms:.4g} &rarr; {d.extended.rms:.4g} (gain {d.gain:.2f}), fit "
             f"{d.baseline.fit_percent:.1f} % &rarr; {d.extended.fit_percent:.1f} %.")
     if len(d.steps) > 1:

@@ -21,6 +21,7 @@ imported or when the environment variable ``HAMMER_ROS_NO_NUMBA`` is ``1``.
 from __future__ import annotations
 
 import os
+import types
 
 import numpy as np
 
@@ -39,7 +40,7 @@ def _kernel(name: str):
         try:
             _KERNELS.update(_compile())
         except ImportError:
-            _KERNELS.update(feedback=None, play=None)
+            _KERNELS.update(feedback=None, cascade=None, play=None)
     return _KERNELS[name]
 
 
@@ -47,7 +48,11 @@ def _compile() -> dict:
     import numba
 
     jit = numba.njit(cache=True, nogil=True)
-    return {"feedback": jit(_feedback_core), "play": jit(_play_core)}
+    # the loops call the compiled map: each is compiled from its own code with that name bound
+    scope = {**globals(), "_map_value": jit(_map_value)}
+    return {"feedback": jit(types.FunctionType(_feedback_core.__code__, scope, "_feedback_core")),
+            "cascade": jit(types.FunctionType(_cascade_core.__code__, scope, "_cascade_core")),
+            "play": jit(_play_core)}
 
 
 def feedback_loop(forced: np.ndarray, b_past: np.ndarray, a_past: np.ndarray, knots: np.ndarray,
@@ -83,9 +88,37 @@ def _feedback_loop_python(forced, b_past, a_past, knots, values, slopes, curvatu
     return np.asarray(y[lead:], dtype=float)
 
 
+def _map_value(knots, values, slopes, curvature_left, curvature_right, x):
+    """h(x) of the piecewise-linear map (knots, values h(c_i), slopes of the p + 1 intervals) with
+    quadratic tails held constant beyond their vertex."""
+    p = len(knots)
+    lo, hi = 0, p  # bisect_left on the knots: knots[lo-1] < x <= knots[lo]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if knots[mid] < x:
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo == 0:
+        d = x - knots[0]
+        if curvature_left != 0.0:  # the quadratic tail is held constant beyond its vertex
+            vertex = -slopes[0] / (2.0 * curvature_left)
+            if d < vertex <= 0.0:
+                d = vertex
+        return values[0] + slopes[0] * d + curvature_left * d * d
+    if lo == p:
+        d = x - knots[p - 1]
+        if curvature_right != 0.0:
+            vertex = -slopes[p] / (2.0 * curvature_right)
+            if 0.0 <= vertex < d:
+                d = vertex
+        return values[p - 1] + slopes[p] * d + curvature_right * d * d
+    return values[lo - 1] + slopes[lo] * (x - knots[lo - 1])
+
+
 def _feedback_core(forced, b_past, a_past, knots, values, slopes, curvature_left, curvature_right, y, hy):
     """The recursion on y[lead:], hy[lead:] (lead = max(len(b_past), len(a_past)) zeros before k = 0)."""
-    nb, na, p = len(b_past), len(a_past), len(knots)
+    nb, na = len(b_past), len(a_past)
     lead = max(nb, na)
     for k in range(lead, lead + len(forced)):
         acc = forced[k - lead]
@@ -94,29 +127,40 @@ def _feedback_core(forced, b_past, a_past, knots, values, slopes, curvature_left
         for j in range(na):
             acc -= a_past[j] * y[k - 1 - j]
         y[k] = acc
-        lo, hi = 0, p  # bisect_left on the knots: knots[lo-1] < acc <= knots[lo]
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if knots[mid] < acc:
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo == 0:
-            d = acc - knots[0]
-            if curvature_left != 0.0:  # the quadratic tail is held constant beyond its vertex
-                vertex = -slopes[0] / (2.0 * curvature_left)
-                if d < vertex <= 0.0:
-                    d = vertex
-            hy[k] = values[0] + slopes[0] * d + curvature_left * d * d
-        elif lo == p:
-            d = acc - knots[p - 1]
-            if curvature_right != 0.0:
-                vertex = -slopes[p] / (2.0 * curvature_right)
-                if 0.0 <= vertex < d:
-                    d = vertex
-            hy[k] = values[p - 1] + slopes[p] * d + curvature_right * d * d
-        else:
-            hy[k] = values[lo - 1] + slopes[lo] * (acc - knots[lo - 1])
+        hy[k] = _map_value(knots, values, slopes, curvature_left, curvature_right, acc)
+
+
+def storage_cascade(drive: np.ndarray, first: tuple, between: tuple, second: tuple,
+                    compiled: bool | None = None) -> np.ndarray:
+    """y(k) = x2(k) of two first-order storages in series, from empty storages (x1 = x2 = 0 at k = 0):
+
+        x1(k+1) = x1(k) + drive(k) - h1(x1(k)),    x2(k+1) = x2(k) + g(x1(k+1)) - h2(x2(k)),
+
+    ``first`` = h1, ``between`` = g, ``second`` = h2, each as (knots, values, slopes) of a
+    piecewise-linear map (the outer slopes continued). ``compiled`` as in ``feedback_loop``."""
+    args = [np.ascontiguousarray(drive, dtype=float)]
+    for m in (first, between, second):
+        args += [np.ascontiguousarray(part, dtype=float) for part in m]
+    use = numba_enabled() if compiled is None else compiled
+    if use:
+        kernel = _kernel("cascade")
+        if kernel is None:
+            raise ImportError("numba is not available")
+        y = np.empty(args[0].size)
+        kernel(*args, y)
+        return y
+    y = [0.0] * args[0].size
+    _cascade_core(*[a.tolist() for a in args], y)
+    return np.asarray(y, dtype=float)
+
+
+def _cascade_core(drive, k1, v1, s1, kg, vg, sg, k2, v2, s2, y):
+    x1, x2 = 0.0, 0.0
+    for k in range(len(drive)):
+        y[k] = x2
+        outflow = _map_value(k2, v2, s2, 0.0, 0.0, x2)
+        x1 = x1 + drive[k] - _map_value(k1, v1, s1, 0.0, 0.0, x1)
+        x2 = x2 + _map_value(kg, vg, sg, 0.0, 0.0, x1) - outflow
 
 
 def play(v: np.ndarray, half: float, initial: float, compiled: bool | None = None) -> np.ndarray:

@@ -13,7 +13,7 @@ started from the papers' estimate (Levenberg-Marquardt, finite-difference Jacobi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import signal
@@ -104,3 +104,29 @@ def refine(simulate: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, y: 
     except (ValueError, np.linalg.LinAlgError):
         return theta0
     return solution.x if 2.0 * solution.cost < start else theta0
+
+
+def refine_best_start(starts: Sequence[tuple[Callable[[np.ndarray], np.ndarray], np.ndarray]], y: np.ndarray,
+                      deterministic: int, screened: int, screen_iterations: int, kept: int,
+                      iterations: int) -> tuple[int, np.ndarray, float]:
+    """The best of several starts of a non-convex simulation-error fit: ``starts`` are
+    (simulate, theta0) pairs; the first ``deterministic`` and the others with the smallest error
+    at their start (``screened`` in all) are refined ``screen_iterations`` LM evaluations
+    (``refine``), the ``kept`` best of those to ``iterations``. Returns (index of the start,
+    theta, sum of squared errors); the error is inf for every start when all diverge."""
+    y = np.asarray(y, dtype=float)
+
+    def cost(i: int, theta: np.ndarray) -> float:
+        with np.errstate(all="ignore"):
+            c = float(np.sum((np.asarray(starts[i][0](theta), dtype=float) - y) ** 2))
+        return c if np.isfinite(c) else np.inf
+
+    def fit(i: int, theta: np.ndarray, count: int) -> tuple[int, np.ndarray, float]:
+        theta = refine(starts[i][0], theta, y, count)
+        return i, theta, cost(i, theta)
+
+    ranked = sorted(range(deterministic, len(starts)), key=lambda i: cost(i, starts[i][1]))
+    chosen = list(range(min(deterministic, len(starts)))) + ranked[: max(screened - deterministic, 0)]
+    screened_fits = sorted((fit(i, starts[i][1], screen_iterations) for i in chosen), key=lambda f: f[2])
+    finished = [fit(i, theta, iterations) for i, theta, c in screened_fits[:kept] if np.isfinite(c)]
+    return min(finished, key=lambda f: f[2]) if finished else (0, starts[0][1], np.inf)
