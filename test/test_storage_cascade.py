@@ -13,13 +13,15 @@ from hammer_ros.diagnosis.hammerstein import fit_hammerstein, quantile_partition
 from hammer_ros.diagnosis.split import split_record
 from hammer_ros.diagnosis.storage_cascade import CascadeLayout, linear_cascade_start, storage_poles
 from hammer_ros.identification.compiled_loops import storage_cascade
+from hammer_ros.identification.static_maps import PiecewiseLinearMap
 
 # the two-tank plant: x1(k+1) = x1 + B u - C1 sqrt(x1), x2(k+1) = x2 + C1 sqrt(x1(k+1)) - C2 sqrt(x2)
 B_IN, C1, C2 = 0.05, 0.1, 0.08
 
 
-def knot_form(knots, values, slopes):
-    return np.asarray(knots, float), np.asarray(values, float), np.asarray(slopes, float)
+def knot_form(knots, values, slopes, curvature_left=0.0, curvature_right=0.0):
+    slopes = np.asarray(slopes, float)
+    return PiecewiseLinearMap(knots, values, slopes[0], slopes[-1], curvature_left, curvature_right)
 
 
 def two_tanks(u: np.ndarray) -> np.ndarray:
@@ -48,7 +50,7 @@ def test_compiled_and_fallback_cascades_agree():
     pytest.importorskip("numba")
     rng = np.random.default_rng(1)
     drive = 0.1 + 0.05 * rng.standard_normal(20000)
-    first = knot_form([0.5, 1.0, 2.0], [0.05, 0.09, 0.15], [0.1, 0.08, 0.06, 0.04])
+    first = knot_form([0.5, 1.0, 2.0], [0.05, 0.09, 0.15], [0.1, 0.08, 0.06, 0.04], 0.0, -0.01)
     between = knot_form([0.5, 1.5], [0.04, 0.1], [0.08, 0.06, 0.0])  # a cap: an overflow
     second = knot_form([0.6, 1.2], [0.06, 0.1], [0.12, 0.07, 0.05])
     compiled = storage_cascade(drive, first, between, second, compiled=True)
@@ -95,7 +97,7 @@ def test_two_tanks_are_fitted_as_storages_in_series_with_their_outflow():
     split = split_record(u, y, 0.7)
     base = fit_hammerstein(split.v_est, split.y_est, 2, 1, quantile_partition(split.v_est, 3), free_knots=False)
     ext = extend_output_feedback(Context(split, base, None, None))
-    assert ext.details["form"] == "storage_cascade"
+    assert ext.details["form"] == "storage_cascade" and set(ext.details["tails"]) == {"f", "h"}
     rms = np.sqrt(np.mean((ext.validation_output - split.y_val) ** 2))
     base_rms = np.sqrt(np.mean((split.validation_output(base.simulate) - split.y_val) ** 2))
     assert rms < 0.03 * np.std(split.y_val) and base_rms > 3 * rms, (rms, base_rms)

@@ -626,23 +626,8 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     level = rest_input(base.simulate, float(np.mean(y[:INITIAL_SAMPLES])), v)
     starts = [np.concatenate([[level], t]) for t in starts]  # [initial level, theta]
     run = layout.runner(v, preroll)
-    everything = np.ones(v.size, dtype=bool)
-
-    def cost(theta: np.ndarray, keep: np.ndarray, tails: tuple | None = None) -> float:
-        with np.errstate(all="ignore"):
-            if tails is None:
-                out = run(theta)
-            else:
-                rest = np.concatenate([np.full(preroll, theta[0]), v])
-                out = layout.simulator(theta[1:], 0, tails)(rest)[preroll:]
-            c = float(np.sum((out[keep] - y[keep]) ** 2))
-        return c if np.isfinite(c) else np.inf
-
-    def fit(theta: np.ndarray, iterations: int, keep: np.ndarray | None = None):
-        """(theta, cost on the estimation samples in ``keep``) after ``iterations`` LM steps."""
-        keep = everything if keep is None else keep
-        theta = refine(lambda t: run(t)[keep], theta, y[keep], iterations)
-        return theta, cost(theta, keep)
+    fit, cost = _tail_fitting(run, lambda t, tails: layout.simulator(t[1:], 0, tails)(
+        np.concatenate([np.full(preroll, t[0]), v]))[preroll:], y)
 
     schedule = (SCREENED_STARTS, SCREEN_ITERATIONS, KEPT_STARTS, FEEDBACK_ITERATIONS)
     _, theta, loop_cost = refine_best_start([(run, t) for t in starts], y, deterministic, *schedule)
@@ -657,22 +642,18 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     if not np.isfinite(loop_cost):
         raise NotFitted("the simulation of every start of the loop diverges on the estimation data")
     a, b, f_fit, h_fit = layout.unpack(theta[1:])
-    # the chosen tails, or the last slopes when those drive the loop unstable
-    for tails in (_choose_tails(theta, v, y, fit, cost), _slope_tails(v, y)):
+
+    def simulator(tails: tuple) -> Callable[[np.ndarray], np.ndarray]:
         f_map, h_map = with_tails(f_fit, *tails[0], *tails[1]), with_tails(h_fit, *tails[2], *tails[3])
-        simulate = _feedback_simulator(a, b, f_map, h_map, preroll)
-        output = s.validation_output(simulate)
-        diverges = not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y)
-        if not diverges:
-            break
-    if diverges:
-        raise NotFitted("the fitted loop diverges on the validation input")
+        return _feedback_simulator(a, b, f_map, h_map, preroll)
+
+    tails, simulate, output = _stable_tails(s, y, simulator, _choose_tails(theta, v, y, fit, cost), "loop")
+    f_map, h_map = with_tails(f_fit, *tails[0], *tails[1]), with_tails(h_fit, *tails[2], *tails[3])
     maps = (map_plot("f (input map)", f_map, v), map_plot("h (feedback map; its linear part is in A)", h_map, y))
     details = {"form": "loop", "feedback_breakpoints": h_part.tolist(), "starts": len(starts),
                "initial_input": float(theta[0]),
                "a": a.tolist(), "b": b.tolist(),
-               "tails": {"f": dict(zip(("left", "right"), tails[1])), "h": dict(zip(("left", "right"), tails[3]))},
-               **_order_details(replace(base, a=a, b=b))}
+               "tails": _tails_details(tails), **_order_details(replace(base, a=a, b=b))}
     return ExtendedModel("output_feedback", "hammerstein / non-linear feedback (PLLS)", output, details, maps,
                          simulate)
 
@@ -680,15 +661,18 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
 def _storage_cascade_model(split: Split, layout: CascadeLayout, theta: np.ndarray, preroll: int,
                            v: np.ndarray, y: np.ndarray) -> ExtendedModel:
     """The extension of ``output_feedback`` as two storages in series (``storage_cascade``),
-    simulated from rest at the input's first value like the loop."""
+    simulated from rest at the input's first value like the loop, its input map f and the
+    output's outflow h2 continued by the tails chosen on held-back data (``_choose_tails``)."""
+    run = layout.runner(v, preroll)
+    fit, cost = _tail_fitting(run, lambda t, tails: layout.simulate(t[1:], v, t[0], preroll, tails), y)
+
+    def simulator(tails: tuple) -> Callable[[np.ndarray], np.ndarray]:
+        return lambda u: layout.simulate(theta[1:], np.asarray(u, dtype=float), float(u[0]), preroll, tails)
+
+    chosen = _choose_tails(theta, v, y, fit, cost)
+    tails, simulate, output = _stable_tails(split, y, simulator, chosen, "storage cascade")
     f_map, h1, g, h2 = layout.maps(theta[1:])
-
-    def simulate(u: np.ndarray) -> np.ndarray:
-        return layout.simulate(theta[1:], np.asarray(u, dtype=float), float(u[0]), preroll)
-
-    output = split.validation_output(simulate)
-    if not np.all(np.isfinite(output)) or np.max(np.abs(output - np.mean(y))) > 100 * np.ptp(y):
-        raise NotFitted("the fitted storages diverge on the validation input")
+    f_map, h2 = with_tails(f_map, *tails[0], *tails[1]), with_tails(h2, *tails[2], *tails[3])
     span = np.ptp(layout.x_part) or 1.0
     levels = np.array([layout.x_part[0] - 0.5 * span, layout.x_part[-1] + 0.5 * span])
     maps = (map_plot("f (inflow of the first storage)", f_map, v),
@@ -697,8 +681,46 @@ def _storage_cascade_model(split: Split, layout: CascadeLayout, theta: np.ndarra
             map_plot("h2 (outflow of the second storage: the output's feedback)", h2, y))
     details = {"form": "storage_cascade", "initial_input": float(theta[0]), "delay": layout.delay,
                "first_level_breakpoints": layout.x_part.tolist(), "feedback_breakpoints": layout.y_part.tolist(),
-               "tails": {"f": {"left": "slope", "right": "slope"}, "h": {"left": "slope", "right": "slope"}}}
+               "tails": _tails_details(tails)}
     return ExtendedModel("output_feedback", STORAGE_CASCADE, output, details, maps, simulate)
+
+
+def _tail_fitting(run: Callable[[np.ndarray], np.ndarray], tailed: Callable[[np.ndarray, tuple], np.ndarray],
+                  y: np.ndarray):
+    """(fit, cost) of a model refined on the simulation error, as ``_choose_tails`` needs them:
+    ``run``(theta) its output on the estimation input, ``tailed``(theta, tails) the same with its
+    maps continued by ``tails``; fit(theta, iterations, keep) -> (theta, cost on ``keep``),
+    cost(theta, keep, tails=None) -> the sum of squared errors on ``keep`` (inf when not finite)."""
+    everything = np.ones(y.size, dtype=bool)
+
+    def cost(theta: np.ndarray, keep: np.ndarray, tails: tuple | None = None) -> float:
+        with np.errstate(all="ignore"):
+            out = run(theta) if tails is None else tailed(theta, tails)
+            c = float(np.sum((out[keep] - y[keep]) ** 2))
+        return c if np.isfinite(c) else np.inf
+
+    def fit(theta: np.ndarray, iterations: int, keep: np.ndarray | None = None):
+        keep = everything if keep is None else keep
+        theta = refine(lambda t: run(t)[keep], theta, y[keep], iterations)
+        return theta, cost(theta, keep)
+
+    return fit, cost
+
+
+def _stable_tails(split: Split, y: np.ndarray, simulator: Callable[[tuple], Callable[[np.ndarray], np.ndarray]],
+                  chosen: tuple, what: str) -> tuple[tuple, Callable[[np.ndarray], np.ndarray], np.ndarray]:
+    """(tails, simulate, validation output) with the ``chosen`` tails, or with the last slopes when
+    those drive the model unstable on the validation input (its output alone decides nothing)."""
+    for tails in (chosen, _slope_tails(split.v_est, y)):
+        simulate = simulator(tails)
+        output = split.validation_output(simulate)
+        if np.all(np.isfinite(output)) and np.max(np.abs(output - np.mean(y))) <= 100 * np.ptp(y):
+            return tails, simulate, output
+    raise NotFitted(f"the fitted {what} diverges on the validation input")
+
+
+def _tails_details(tails: tuple) -> dict:
+    return {"f": dict(zip(("left", "right"), tails[1])), "h": dict(zip(("left", "right"), tails[3]))}
 
 
 def _held_back(x: np.ndarray, side: int, parts: int = 4) -> slice:

@@ -33,7 +33,7 @@ from ..identification.compiled_loops import storage_cascade
 from ..identification.piecewise_linear_ls import point_slope_basis, point_slope_map
 from ..identification.regression import solve_least_squares
 from ..identification.simulation_error import steady_state_filter
-from ..identification.static_maps import PiecewiseLinearMap
+from ..identification.static_maps import PiecewiseLinearMap, with_tails
 from .hammerstein import HammersteinModel, quantile_partition
 
 Simulator = Callable[[np.ndarray], np.ndarray]
@@ -83,13 +83,16 @@ class CascadeLayout:
         shift = self.delay - 1
         return np.concatenate([np.full(shift, drive[0]), drive[: drive.size - shift]]) if shift > 0 else drive
 
-    def simulate(self, theta: np.ndarray, v: np.ndarray, level: float, preroll: int) -> np.ndarray:
+    def simulate(self, theta: np.ndarray, v: np.ndarray, level: float, preroll: int,
+                 tails: tuple | None = None) -> np.ndarray:
         """The cascade's output for v, started at rest at the constant input ``level`` (``preroll``
-        samples of it simulated first from empty storages and dropped)."""
+        samples of it simulated first from empty storages and dropped); ``tails``: (v range, f
+        tails, y range, h2 tails) of ``with_tails`` for the input map f and the output's outflow h2."""
         f_map, h1, g, h2 = self.maps(theta)
+        if tails is not None:
+            f_map, h2 = with_tails(f_map, *tails[0], *tails[1]), with_tails(h2, *tails[2], *tails[3])
         drive = self.drive(np.concatenate([np.full(preroll, level), v]), f_map)
-        knots = [(m.breakpoints, m.values, m.slopes) for m in (h1, g, h2)]
-        return storage_cascade(drive, *knots)[preroll:]
+        return storage_cascade(drive, h1, g, h2)[preroll:]
 
     def runner(self, v: np.ndarray, preroll: int) -> Callable[[np.ndarray], np.ndarray]:
         """[level, theta] -> the output for v (the refinement's inner loop)."""

@@ -130,17 +130,17 @@ def _feedback_core(forced, b_past, a_past, knots, values, slopes, curvature_left
         hy[k] = _map_value(knots, values, slopes, curvature_left, curvature_right, acc)
 
 
-def storage_cascade(drive: np.ndarray, first: tuple, between: tuple, second: tuple,
-                    compiled: bool | None = None) -> np.ndarray:
+def storage_cascade(drive: np.ndarray, first, between, second, compiled: bool | None = None) -> np.ndarray:
     """y(k) = x2(k) of two first-order storages in series, from empty storages (x1 = x2 = 0 at k = 0):
 
         x1(k+1) = x1(k) + drive(k) - h1(x1(k)),    x2(k+1) = x2(k) + g(x1(k+1)) - h2(x2(k)),
 
-    ``first`` = h1, ``between`` = g, ``second`` = h2, each as (knots, values, slopes) of a
-    piecewise-linear map (the outer slopes continued). ``compiled`` as in ``feedback_loop``."""
+    ``first`` = h1, ``between`` = g, ``second`` = h2, each a ``PiecewiseLinearMap`` (knots,
+    values, slopes, quadratic tails as in ``feedback_loop``). ``compiled`` as in ``feedback_loop``."""
     args = [np.ascontiguousarray(drive, dtype=float)]
     for m in (first, between, second):
-        args += [np.ascontiguousarray(part, dtype=float) for part in m]
+        args += [np.ascontiguousarray(part, dtype=float) for part in (m.breakpoints, m.values, m.slopes)]
+        args += [float(m.curvature_left), float(m.curvature_right)]
     use = numba_enabled() if compiled is None else compiled
     if use:
         kernel = _kernel("cascade")
@@ -150,17 +150,17 @@ def storage_cascade(drive: np.ndarray, first: tuple, between: tuple, second: tup
         kernel(*args, y)
         return y
     y = [0.0] * args[0].size
-    _cascade_core(*[a.tolist() for a in args], y)
+    _cascade_core(*[a.tolist() if isinstance(a, np.ndarray) else a for a in args], y)
     return np.asarray(y, dtype=float)
 
 
-def _cascade_core(drive, k1, v1, s1, kg, vg, sg, k2, v2, s2, y):
+def _cascade_core(drive, k1, v1, s1, l1, r1, kg, vg, sg, lg, rg, k2, v2, s2, l2, r2, y):
     x1, x2 = 0.0, 0.0
     for k in range(len(drive)):
         y[k] = x2
-        outflow = _map_value(k2, v2, s2, 0.0, 0.0, x2)
-        x1 = x1 + drive[k] - _map_value(k1, v1, s1, 0.0, 0.0, x1)
-        x2 = x2 + _map_value(kg, vg, sg, 0.0, 0.0, x1) - outflow
+        outflow = _map_value(k2, v2, s2, l2, r2, x2)
+        x1 = x1 + drive[k] - _map_value(k1, v1, s1, l1, r1, x1)
+        x2 = x2 + _map_value(kg, vg, sg, lg, rg, x1) - outflow
 
 
 def play(v: np.ndarray, half: float, initial: float, compiled: bool | None = None) -> np.ndarray:
