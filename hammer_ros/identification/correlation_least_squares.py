@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from ..errors import IdentificationError
 from .correlation import auto_correlation, cross_correlation
@@ -181,8 +180,8 @@ def gain_correction(
     denominator[output_lags] = step1.denominator
     numerator = np.zeros(first + 1)
     numerator[input_lags] = step1.numerator
-    target = signal.lfilter(denominator, [1.0], y)[first:]
-    regressors = signal.lfilter(numerator, [1.0], basis, axis=0)[first:]
+    target = np.convolve(y, denominator, "valid")  # = lfilter(denominator, [1], y)[first:]
+    regressors = np.column_stack([np.convolve(column, numerator, "valid") for column in basis.T])
     return solve_least_squares(regressors, target)
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import signal
 
 from ..errors import IdentificationError
 from .linear import LinearModel
@@ -63,8 +62,9 @@ class StateSpaceRealization:
         ``delay`` numerator coefficients (h_0 .. h_(d-1) = 0 for a known relative degree d)
         are set to exact zeros: the realisation reproduces them only up to rounding, and a
         1e-17 leading coefficient would show up as a spurious zero near infinity."""
-        num, den = signal.ss2tf(self.A, self.B, self.C, np.array([[self.D]]))
-        num = np.atleast_2d(num)[0].copy()
+        den = np.poly(self.A)
+        # SISO: C (zI - A)^-1 B = [det(zI - A + BC) - det(zI - A)] / det(zI - A) (matrix determinant lemma)
+        num = np.poly(self.A - self.B @ self.C) - den + self.D * den
         num[:delay] = 0.0
         return LinearModel(num, den)
 
