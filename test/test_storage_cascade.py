@@ -8,12 +8,14 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from hammer_ros.diagnosis.diagnose import diagnose
 from hammer_ros.diagnosis.extensions import Context, extend_output_feedback
 from hammer_ros.diagnosis.hammerstein import fit_hammerstein, quantile_partition
 from hammer_ros.diagnosis.split import split_record
-from hammer_ros.diagnosis.storage_cascade import CascadeLayout, linear_cascade_start, storage_poles
+from hammer_ros.diagnosis.storage_cascade import CascadeLayout, linear_cascade_start, plausible_rest, storage_poles
 from hammer_ros.identification.compiled_loops import storage_cascade
 from hammer_ros.identification.static_maps import PiecewiseLinearMap
+from hammer_ros.tools.reproduce.real import RECORDS
 
 # the two-tank plant: x1(k+1) = x1 + B u - C1 sqrt(x1), x2(k+1) = x2 + C1 sqrt(x1(k+1)) - C2 sqrt(x2)
 B_IN, C1, C2 = 0.05, 0.1, 0.08
@@ -105,3 +107,28 @@ def test_two_tanks_are_fitted_as_storages_in_series_with_their_outflow():
     bulk = (h2.x >= np.quantile(split.y_est, 0.05)) & (h2.x <= np.quantile(split.y_est, 0.95))
     difference = h2.y[bulk] - C2 * np.sqrt(h2.x[bulk])
     assert np.ptp(difference) < 0.05 * np.ptp(C2 * np.sqrt(h2.x[bulk]))
+
+
+def test_a_storage_that_drains_without_bound_has_no_plausible_rest():
+    """The linear start's rest states follow the baseline's steady output; the same cascade with
+    an h1 that falls below the first knot (the first storage drains faster the emptier it is)
+    has no equilibrium at the lowest inputs and is not kept."""
+    u, y = tank_record(noise=0.0)
+    base = fit_hammerstein(u, y, 2, 1, quantile_partition(u, 3), free_knots=False)
+    layout, theta = linear_cascade_start(base, base.partition, storage_poles(base.linear.poles), u, 1)
+    assert plausible_rest(layout, theta, u, y, 3000)
+    broken = theta.copy()
+    nf = layout.sizes()[0]
+    broken[nf] = -0.05  # the slope of h1 below its first knot
+    assert not plausible_rest(layout, broken, u, y, 3000)
+
+
+def test_the_cascaded_tanks_with_the_order_chosen_are_two_storages_too():
+    """The benchmark record (1024 estimation samples -> the test record) without a nominal order:
+    the order chosen is 3, the storages start from its two slowest poles, and the diagnosis
+    names the outflow feedback at the level of the best black-box models (<= 0.45 V)."""
+    split = RECORDS["cascaded_tanks"].load()
+    d = diagnose(split, None).diagnosis
+    assert d.baseline_model["order"] >= 3
+    assert d.cause == "output_feedback" and d.details["form"] == "storage_cascade"
+    assert d.extended.rms <= 0.45 and d.gain >= 1.15

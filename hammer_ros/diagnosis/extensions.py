@@ -33,7 +33,7 @@ from ..identification.simulate import play_operator, simulate_hammerstein_feedba
 from ..identification.simulation_error import (
     preroll_simulate,
     refine,
-    refine_best_start,
+    refine_starts,
     settling_samples,
     stabilised_denominator,
     steady_state_filter,
@@ -52,7 +52,7 @@ from .hammerstein import (
     transient_samples,
 )
 from .split import INITIAL_SAMPLES, Split, rest_input
-from .storage_cascade import CascadeLayout, cascade_starts
+from .storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .wiener_hammerstein import (
     WienerHammersteinFit,
     essential_order,
@@ -376,6 +376,8 @@ FEEDBACK_ITERATIONS = 40
 STORAGE_CASCADE = ("two storages in series: x1+ = x1 + f(u) - h1(x1), x2+ = x2 + g(x1+) - h2(x2), y = x2 "
                    "(non-linear feedback of both levels)")
 KEPT_STARTS = 2  # starts refined to the end
+KEPT_CASCADES = 4  # storages in series refined to the end on a short record (all screened there); the best
+# whose rest states are plausible is kept
 TAIL_ITERATIONS = 10  # LM iterations of the fit without the held-back quarter (tail choice)
 TAIL_MARGIN = 0.02  # a tail other than the last slope must lower the held-back error by this share
 
@@ -567,7 +569,11 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     each with its own level-dependent outflow (``storage_cascade``: the lower of two tanks feels
     the upper tank's outflow, a function of a level the output does not carry), started from
     the baseline's poles in both orders and from random ones, refined the same way; the form
-    with the smaller simulation error on the estimation data is kept (``form`` in the details)."""
+    with the smaller simulation error on the estimation data is kept (``form`` in the details): the
+    best refined cascade whose rest states over the record's input range stay near the measured
+    outputs (``plausible_rest``). On records up to SELECTION_SAMPLES every start of the cascade is
+    screened and KEPT_CASCADES are refined to the end (its error surface has more local minima than
+    the loop's), beyond that the loop's schedule."""
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     delay = max(base.delay, 1)
@@ -630,17 +636,23 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
         np.concatenate([np.full(preroll, t[0]), v]))[preroll:], y)
 
     schedule = (SCREENED_STARTS, SCREEN_ITERATIONS, KEPT_STARTS, FEEDBACK_ITERATIONS)
-    _, theta, loop_cost = refine_best_start([(run, t) for t in starts], y, deterministic, *schedule)
+    loop_fits = refine_starts([(run, t) for t in starts], y, deterministic, *schedule)
+    loop_cost = loop_fits[0][2] if loop_fits else np.inf
     cascade = cascade_starts(base, f_part, v, level, preroll, delay, random_starts(v.size))
-    if cascade:
-        i, cascade_theta, cascade_cost = refine_best_start([(r, t) for _, r, t in cascade], y, 2, *schedule)
-        if cascade_cost < loop_cost:
+    short = v.size <= SELECTION_SAMPLES  # every start screened, more refined: cheap on a short record
+    cascade_schedule = (len(cascade) if short else SCREENED_STARTS, SCREEN_ITERATIONS,
+                        KEPT_CASCADES if short else KEPT_STARTS, FEEDBACK_ITERATIONS)
+    for i, cascade_theta, cascade_cost in refine_starts([(r, t) for _, r, t in cascade], y, 2, *cascade_schedule):
+        if cascade_cost >= loop_cost:
+            break
+        if plausible_rest(cascade[i][0], cascade_theta[1:], v, y, preroll):
             try:
                 return _storage_cascade_model(s, cascade[i][0], cascade_theta, preroll, v, y)
             except NotFitted:
-                pass  # the loop's model, when it does not diverge too
-    if not np.isfinite(loop_cost):
+                break  # the loop's model, when it does not diverge too
+    if not loop_fits:
         raise NotFitted("the simulation of every start of the loop diverges on the estimation data")
+    theta = loop_fits[0][1]
     a, b, f_fit, h_fit = layout.unpack(theta[1:])
 
     def simulator(tails: tuple) -> Callable[[np.ndarray], np.ndarray]:

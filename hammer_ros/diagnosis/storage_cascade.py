@@ -38,6 +38,7 @@ from .hammerstein import HammersteinModel, quantile_partition
 
 Simulator = Callable[[np.ndarray], np.ndarray]
 LEVEL_BREAKPOINTS = 3  # breakpoints of h1, g (on the first level) and h2 (on the output)
+REST_LEVELS = 9  # constant inputs at which ``plausible_rest`` looks at the rest state
 MIN_POLE, MAX_POLE = 0.05, 0.9995  # the real poles a storage can have (leak 1 - p per sample)
 
 
@@ -126,13 +127,27 @@ def linear_cascade_start(base: HammersteinModel, f_part: np.ndarray, poles: tupl
 
 
 def storage_poles(poles: np.ndarray) -> tuple[float, float] | None:
-    """The two real poles of a second-order block inside (MIN_POLE, MAX_POLE), slowest first
-    (a complex pair: its radius twice); None when the block is not of order 2."""
-    if np.size(poles) != 2:
+    """The two slowest poles of the baseline's block as storages' real poles, slowest first (a
+    complex pole counts with its radius), clipped to (MIN_POLE, MAX_POLE); None below order 2.
+    A block of higher order starts the cascade from its dominant pair (the faster poles of an
+    actuator or a sensor are left to the storages' maps)."""
+    if np.size(poles) < 2:
         return None
     radii = np.sort(np.clip(np.where(np.abs(np.imag(poles)) > 1e-9, np.abs(poles), np.real(poles)),
                             MIN_POLE, MAX_POLE))[::-1]
     return float(radii[0]), float(radii[1])
+
+
+def plausible_rest(layout: CascadeLayout, theta: np.ndarray, v: np.ndarray, y: np.ndarray, preroll: int) -> bool:
+    """Whether the cascade's rest states for REST_LEVELS constant inputs across the range of v
+    lie within the measured output range widened by its span on each side: a model whose
+    equilibrium for an input the record contains is far from anything measured (a storage
+    that drains without bound, because the record never settles there) is not kept, however
+    well it follows the record."""
+    grid = np.linspace(float(np.min(v)), float(np.max(v)), REST_LEVELS)
+    rest = np.array([layout.simulate(theta, np.full(1, u0), u0, preroll)[0] for u0 in grid])
+    span = float(np.ptp(y))
+    return bool(np.all(np.isfinite(rest)) and np.all(rest >= np.min(y) - span) and np.all(rest <= np.max(y) + span))
 
 
 def random_storage_poles(rng: np.random.Generator, poles: tuple[float, float]) -> tuple[float, float]:

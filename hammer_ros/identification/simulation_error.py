@@ -106,14 +106,15 @@ def refine(simulate: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, y: 
     return solution.x if 2.0 * solution.cost < start else theta0
 
 
-def refine_best_start(starts: Sequence[tuple[Callable[[np.ndarray], np.ndarray], np.ndarray]], y: np.ndarray,
-                      deterministic: int, screened: int, screen_iterations: int, kept: int,
-                      iterations: int) -> tuple[int, np.ndarray, float]:
-    """The best of several starts of a non-convex simulation-error fit: ``starts`` are
+def refine_starts(starts: Sequence[tuple[Callable[[np.ndarray], np.ndarray], np.ndarray]], y: np.ndarray,
+                  deterministic: int, screened: int, screen_iterations: int, kept: int,
+                  iterations: int) -> list[tuple[int, np.ndarray, float]]:
+    """The refined starts of a non-convex simulation-error fit, best first: ``starts`` are
     (simulate, theta0) pairs; the first ``deterministic`` and the others with the smallest error
     at their start (``screened`` in all) are refined ``screen_iterations`` LM evaluations
     (``refine``), the ``kept`` best of those to ``iterations``. Returns (index of the start,
-    theta, sum of squared errors); the error is inf for every start when all diverge."""
+    theta, sum of squared errors) of those refined to the end whose error is finite (none when
+    every start diverges)."""
     y = np.asarray(y, dtype=float)
 
     def cost(i: int, theta: np.ndarray) -> float:
@@ -129,4 +130,4 @@ def refine_best_start(starts: Sequence[tuple[Callable[[np.ndarray], np.ndarray],
     chosen = list(range(min(deterministic, len(starts)))) + ranked[: max(screened - deterministic, 0)]
     screened_fits = sorted((fit(i, starts[i][1], screen_iterations) for i in chosen), key=lambda f: f[2])
     finished = [fit(i, theta, iterations) for i, theta, c in screened_fits[:kept] if np.isfinite(c)]
-    return min(finished, key=lambda f: f[2]) if finished else (0, starts[0][1], np.inf)
+    return sorted((f for f in finished if np.isfinite(f[2])), key=lambda f: f[2])
