@@ -565,10 +565,10 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     the loop unstable on the validation input (its output alone decides nothing), both maps
     continue with their last slopes.
 
-    A second form competes when the baseline is of order 2: two first-order storages in series,
-    each with its own level-dependent outflow (``storage_cascade``: the lower of two tanks feels
-    the upper tank's outflow, a function of a level the output does not carry), started from
-    the baseline's poles in both orders and from random ones, refined the same way; the form
+    A second form competes from baseline order 2 on: two first-order storages in series, each
+    with its own level-dependent outflow (``storage_cascade``: the lower of two tanks feels the
+    upper tank's outflow, a function of a level the output does not carry), started from the
+    baseline's two slowest poles in both orders and from random ones, refined the same way; the form
     with the smaller simulation error on the estimation data is kept (``form`` in the details): the
     best refined cascade whose rest states over the record's input range stay near the measured
     outputs (``plausible_rest``). On records up to SELECTION_SAMPLES every start of the cascade is

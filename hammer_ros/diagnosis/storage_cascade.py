@@ -58,6 +58,7 @@ class CascadeLayout:
         return max(1, partition.size // 2)
 
     def sizes(self) -> tuple[int, int, int, int]:
+        """The lengths of theta's parts for f, h1, g and h2."""
         return self.f_part.size + 2, self.x_part.size + 1, self.x_part.size + 2, self.y_part.size + 1
 
     def maps(self, theta: np.ndarray) -> tuple[PiecewiseLinearMap, ...]:
@@ -159,9 +160,9 @@ def random_storage_poles(rng: np.random.Generator, poles: tuple[float, float]) -
 def cascade_starts(base: HammersteinModel, f_part: np.ndarray, v: np.ndarray, level: float, preroll: int,
                    delay: int, random_starts: int) -> list[tuple[CascadeLayout, Simulator, np.ndarray]]:
     """The starts of the cascade as (layout, runner of [initial level, theta] on v, [level, theta]):
-    the baseline's poles in both orders, then ``random_starts`` moved at random
-    (``random_storage_poles``), each a ``linear_cascade_start`` with its own knots of x1; none
-    when the baseline is not of order 2."""
+    the baseline's two slowest poles (``storage_poles``) in both orders, then ``random_starts``
+    moved at random (``random_storage_poles``), each a ``linear_cascade_start`` with its own knots
+    of x1; none below order 2."""
     poles = storage_poles(base.linear.poles)
     if poles is None:
         return []
