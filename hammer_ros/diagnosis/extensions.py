@@ -378,13 +378,15 @@ STORAGE_CASCADE = ("two storages in series: x1+ = x1 + f(u) - h1(x1), x2+ = x2 +
 KEPT_STARTS = 2  # starts refined to the end
 KEPT_CASCADES = 4  # storages in series refined to the end on a short record (all screened there); the best
 # whose rest states are plausible is kept
+SHORT_RECORD = 1500  # estimation samples below which a record is short: fewer breakpoints of h, every start
+# of the storages in series screened
 TAIL_ITERATIONS = 10  # LM iterations of the fit without the held-back quarter (tail choice)
 TAIL_MARGIN = 0.02  # a tail other than the last slope must lower the held-back error by this share
 
 
 def feedback_breakpoints(samples: int) -> int:
-    """Breakpoints of h: 3 for short records (the loop over-fits them), 5 from 1500 samples on."""
-    return 3 if samples < 1500 else 5
+    """Breakpoints of h: 3 for short records (the loop over-fits them), 5 from SHORT_RECORD on."""
+    return 3 if samples < SHORT_RECORD else 5
 
 
 def random_starts(samples: int) -> int:
@@ -571,9 +573,9 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     baseline's two slowest poles in both orders and from random ones, refined the same way; the form
     with the smaller simulation error on the estimation data is kept (``form`` in the details): the
     best refined cascade whose rest states over the record's input range stay near the measured
-    outputs (``plausible_rest``). On records up to SELECTION_SAMPLES every start of the cascade is
-    screened and KEPT_CASCADES are refined to the end (its error surface has more local minima than
-    the loop's), beyond that the loop's schedule."""
+    outputs (``plausible_rest``). On a short record (below SHORT_RECORD samples, where a few slow
+    excursions leave many local minima and a simulation is cheap) every start of the cascade is
+    screened and KEPT_CASCADES are refined to the end; beyond that the loop's schedule."""
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     delay = max(base.delay, 1)
@@ -639,7 +641,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     loop_fits = refine_starts([(run, t) for t in starts], y, deterministic, *schedule)
     loop_cost = loop_fits[0][2] if loop_fits else np.inf
     cascade = cascade_starts(base, f_part, v, level, preroll, delay, random_starts(v.size))
-    short = v.size <= SELECTION_SAMPLES  # every start screened, more refined: cheap on a short record
+    short = v.size < SHORT_RECORD  # every start screened, more refined: cheap on a short record
     cascade_schedule = (len(cascade) if short else SCREENED_STARTS, SCREEN_ITERATIONS,
                         KEPT_CASCADES if short else KEPT_STARTS, FEEDBACK_ITERATIONS)
     for i, cascade_theta, cascade_cost in refine_starts([(r, t) for _, r, t in cascade], y, 2, *cascade_schedule):
