@@ -649,7 +649,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
             break
         if plausible_rest(cascade[i][0], cascade_theta[1:], v, y, preroll):
             try:
-                return _storage_cascade_model(s, cascade[i][0], cascade_theta, preroll, v, y)
+                return _storage_cascade_model(s, cascade[i][0], cascade[i][1], cascade_theta, preroll, v, y)
             except NotFitted:
                 break  # the loop's model, when it does not diverge too
     if not loop_fits:
@@ -672,12 +672,12 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
                          simulate)
 
 
-def _storage_cascade_model(split: Split, layout: CascadeLayout, theta: np.ndarray, preroll: int,
-                           v: np.ndarray, y: np.ndarray) -> ExtendedModel:
+def _storage_cascade_model(split: Split, layout: CascadeLayout, run: Callable[[np.ndarray], np.ndarray],
+                           theta: np.ndarray, preroll: int, v: np.ndarray, y: np.ndarray) -> ExtendedModel:
     """The extension of ``output_feedback`` as two storages in series (``storage_cascade``),
     simulated from rest at the input's first value like the loop, its input map f and the
-    output's outflow h2 continued by the tails chosen on held-back data (``_choose_tails``)."""
-    run = layout.runner(v, preroll)
+    output's outflow h2 continued by the tails chosen on held-back data (``_choose_tails``);
+    ``run``: the layout's runner on the estimation input (the one it was refined with)."""
     fit, cost = _tail_fitting(run, lambda t, tails: layout.simulate(t[1:], v, t[0], preroll, tails), y)
 
     def simulator(tails: tuple) -> Callable[[np.ndarray], np.ndarray]:

@@ -155,6 +155,7 @@ def storage_cascade(drive: np.ndarray, first, between, second, compiled: bool | 
 
 
 def _cascade_core(drive, k1, v1, s1, l1, r1, kg, vg, sg, lg, rg, k2, v2, s2, l2, r2, y):
+    """The recursion of ``storage_cascade``: each map as (knots, values, slopes, curvatures)."""
     x1, x2 = 0.0, 0.0
     for k in range(len(drive)):
         y[k] = x2
