@@ -37,7 +37,7 @@ from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .linear import LinearModel
 from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
-from .regression import fit_regression, markov_lags, polynomial_basis, solve_least_squares
+from .regression import fit_regression, least_squares_qr, markov_lags, polynomial_basis
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap
@@ -175,14 +175,17 @@ def gain_correction(
         basis = polynomial_basis(v, poly, constant=True)
     if v.size <= first + basis.shape[1]:
         raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
-    denominator = np.zeros(first + 1)
-    denominator[0] = 1.0
-    denominator[output_lags] = step1.denominator
     numerator = np.zeros(first + 1)
     numerator[input_lags] = step1.numerator
-    target = np.convolve(y, denominator, "valid")  # = lfilter(denominator, [1], y)[first:]
-    regressors = np.column_stack([np.convolve(column, numerator, "valid") for column in basis.T])
-    return solve_least_squares(regressors, target)
+    rows = v.size - first
+    target = y[first:].copy()  # A_hat(q^-1) y = lfilter(denominator, [1], y)[first:], its n lags added
+    for lag, alpha in zip(output_lags, step1.denominator, strict=True):
+        target += alpha * y[first - lag : first - lag + rows]
+    regressors = np.empty((rows, basis.shape[1]))
+    regressors[:, 0] = basis[0, 0] * numerator.sum()  # the constant column's FIR
+    for j in range(1, basis.shape[1]):
+        regressors[:, j] = np.convolve(basis[:, j], numerator, "valid")
+    return least_squares_qr(regressors, target)
 
 
 def correlation_least_squares(

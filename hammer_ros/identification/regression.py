@@ -10,8 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lapack
 
 from ..errors import IdentificationError
+
+QR_RANK_TOLERANCE = 1e-10  # least_squares_qr hands R with |r_ii| below this x max |r_jj| to the SVD
 
 
 def delayed(x: np.ndarray, lag: int, initial: float = 0.0) -> np.ndarray:
@@ -109,6 +112,30 @@ def solve_least_squares(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
     return theta
 
 
+def least_squares_qr(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``solve_least_squares`` by one Householder QR of the augmented [phi | target] (LAPACK
+    dgeqrf, Q never formed): with R the triangle of phi's columns and z the first n entries of
+    Q^T target, theta solves R theta = z. The same solution for a tall phi of full rank, about
+    3-6x faster than the SVD on the problems of CLS (101 x 36, 4000 x 4); a phi that is not tall,
+    non-finite data or an R with |r_ii| < QR_RANK_TOLERANCE max |r_jj| (nearly rank deficient,
+    where the minimum-norm solution is the defined answer) go to ``solve_least_squares``."""
+    phi, target = np.asarray(phi, dtype=float), np.asarray(target, dtype=float)
+    rows, n = phi.shape
+    targets = target.reshape(rows, -1)
+    if rows <= n or n == 0 or not (np.all(np.isfinite(phi)) and np.all(np.isfinite(targets))):
+        return solve_least_squares(phi, target)
+    augmented = np.empty((rows, n + targets.shape[1]), order="F")
+    augmented[:, :n], augmented[:, n:] = phi, targets
+    qr, _, _, info = lapack.dgeqrf(augmented, overwrite_a=True)
+    diagonal = np.abs(np.diagonal(qr)[:n])
+    if info != 0 or not diagonal.min() > QR_RANK_TOLERANCE * diagonal.max():
+        return solve_least_squares(phi, target)
+    theta, info = lapack.dtrtrs(qr[:n, :n], qr[:n, n:])
+    if info != 0:
+        return solve_least_squares(phi, target)
+    return theta.reshape((n, *target.shape[1:]))
+
+
 def fit_regression(
     y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, intercept: bool = False
 ) -> tuple[Regression, np.ndarray]:
@@ -130,7 +157,7 @@ def fit_regression(
             f"{reg.rows.size} regression rows for {phi.shape[1]} parameters "
             f"(order {order}, delay {delay}, mu {mu}): record or --tau-max too short"
         )
-    theta = solve_least_squares(phi, reg.target)
+    theta = least_squares_qr(phi, reg.target)
     return reg, theta[: reg.phi.shape[1]]
 
 
@@ -138,5 +165,12 @@ def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.n
     """Columns v, v^2, ..., v^degree (f_l = v^l, paper 000 Remark 3), with a leading column of
     ones when ``constant``."""
     v = np.asarray(v, dtype=float)
-    powers = np.cumprod(np.broadcast_to(v[:, None], (v.size, degree)), axis=1)  # v, v^2, ... by products
-    return np.hstack([np.ones((v.size, 1)), powers]) if constant else powers
+    first = 1 if constant else 0
+    basis = np.empty((v.size, first + degree))
+    if constant:
+        basis[:, 0] = 1.0
+    if degree:
+        basis[:, first] = v
+    for column in range(first + 1, first + degree):  # v^l = v^(l-1) v, the products in turn
+        basis[:, column] = basis[:, column - 1] * v
+    return basis
