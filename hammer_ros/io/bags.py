@@ -23,6 +23,7 @@ import json
 import re
 import struct
 import sys
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -269,16 +270,60 @@ class _RecordScan:
                 offset = fh.tell()
 
     def _chunk(self, chunk, offset: int) -> list[Any]:
-        from mcap.stream_reader import breakup_chunk
-
         if chunk.uncompressed_size > MAX_RECORD_BYTES:
             self.damage.append(f"chunk at byte {offset:,} claims {chunk.uncompressed_size:,} bytes; skipped")
             return []
         try:
-            return breakup_chunk(chunk, validate_crc=True)
+            return chunk_records(chunk)
         except Exception as exc:  # damaged data fails in many ways inside zstd/lz4/the parser
             self.damage.append(f"chunk at byte {offset:,} is corrupt ({_reason(exc)}); skipped")
             return []
+
+
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+MESSAGE_OPCODE, CHANNEL_OPCODE, SCHEMA_OPCODE = 0x05, 0x04, 0x03
+
+
+def chunk_records(chunk) -> list[Any]:
+    """The Schema, Channel and Message records of an MCAP chunk (what ``mcap``'s
+    ``breakup_chunk`` with CRC validation gives), its message records parsed with one
+    ``struct`` call each instead of mcap's stream reader (about 3x less time per message).
+    Raises on a CRC mismatch or a record that overruns the chunk."""
+    from io import BytesIO
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Channel, Message, Schema
+
+    if chunk.compression == "zstd":
+        import zstandard
+
+        data = zstandard.decompress(chunk.data, chunk.uncompressed_size)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.decompress(chunk.data)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"unknown chunk compression {chunk.compression!r}")
+    if chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError(f"chunk CRC mismatch ({zlib.crc32(data)} vs {chunk.uncompressed_crc})")
+    records: list[Any] = []
+    pos, end = 0, len(data)
+    while pos < end:
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        body, pos = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
+        if pos > end:
+            raise ValueError(f"a record of {length:,} bytes overruns the chunk")
+        if opcode == MESSAGE_OPCODE:
+            channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, body)
+            records.append(Message(channel_id=channel_id, log_time=log_time, publish_time=publish_time,
+                                   sequence=sequence, data=data[body + _MESSAGE_HEAD.size : pos]))
+        elif opcode in (CHANNEL_OPCODE, SCHEMA_OPCODE):
+            stream = ReadDataStream(BytesIO(data[body:pos]))
+            records.append(Channel.read(stream) if opcode == CHANNEL_OPCODE else Schema.read(stream))
+    return records
 
 
 def _reason(exc: BaseException) -> str:
@@ -439,16 +484,35 @@ RECENT_COUNT = 2
 _recently_decoded: dict[tuple, Any] = {}
 
 
-def iter_bag_messages(path: str | Path, topics: list[str],
-                      stats: BagReadStats | None = None) -> Iterator[tuple[str, int, Any]]:
-    """(topic, log time in ns, decoded message) of ``topics`` in log-time order (per chunk;
-    files merged by log time). Damaged chunks, messages over MAX_MESSAGE_BYTES and messages that
-    do not decode are skipped and counted in ``stats``; only ``topics`` are decoded."""
+_SKIPPED = object()  # what a decode function returns for a message it skipped (and counted)
+
+
+def _decode_message(file: Path, decoders: _Decoders, channel, record, stats: BagReadStats) -> Any:
+    """The message decoded with its schema (mcap_ros2), or _SKIPPED (counted) when it does not decode."""
+    key = (str(file), channel.id, record.sequence, record.log_time)
+    decoded = _recently_decoded.get(key)
+    try:
+        decoded = decoders.get(channel)(record.data) if decoded is None else decoded
+    except Exception as exc:  # corrupt CDR bytes fail in many ways
+        stats.undecodable += 1
+        stats.note("undecodable", f"{channel.topic}: {_reason(exc)}")
+        return _SKIPPED
+    if len(record.data) > RECENT_BYTES and key not in _recently_decoded:
+        while len(_recently_decoded) >= RECENT_COUNT:
+            _recently_decoded.pop(next(iter(_recently_decoded)))
+        _recently_decoded[key] = decoded
+    return decoded
+
+
+def _bag_records(path: str | Path, topics: list[str], stats: BagReadStats, decode) -> Iterator[tuple[int, str, Any]]:
+    """(log time in ns, topic, ``decode(file, decoders, channel, record, stats)``) of ``topics``
+    in log-time order (per chunk; files merged by log time). Damaged chunks and messages over
+    MAX_MESSAGE_BYTES are skipped and counted in ``stats``, and so are the messages ``decode``
+    returns _SKIPPED for."""
     import heapq
 
     from mcap.records import Channel, Message, Schema
 
-    stats = stats if stats is not None else BagReadStats()
     wanted = set(topics)
 
     def one_file(file: Path):
@@ -471,22 +535,21 @@ def iter_bag_messages(path: str | Path, topics: list[str],
                     stats.oversized += 1
                     stats.note("oversized", f"{channel.topic}: {len(record.data):,} bytes")
                     continue
-                key = (str(file), channel.id, record.sequence, log_time)
-                decoded = _recently_decoded.get(key)
-                try:
-                    decoded = decoders.get(channel)(record.data) if decoded is None else decoded
-                except Exception as exc:  # corrupt CDR bytes fail in many ways
-                    stats.undecodable += 1
-                    stats.note("undecodable", f"{channel.topic}: {_reason(exc)}")
-                    continue
-                if len(record.data) > RECENT_BYTES and key not in _recently_decoded:
-                    while len(_recently_decoded) >= RECENT_COUNT:
-                        _recently_decoded.pop(next(iter(_recently_decoded)))
-                    _recently_decoded[key] = decoded
-                yield log_time, channel.topic, decoded
+                decoded = decode(file, decoders, channel, record, stats)
+                if decoded is not _SKIPPED:
+                    yield log_time, channel.topic, decoded
         stats.damage.extend(f"{file}: {d}" for d in scan.damage if f"{file}: {d}" not in stats.damage)
 
-    for log_time, topic, decoded in heapq.merge(*(one_file(f) for f in bag_files(path)), key=lambda m: m[0]):
+    yield from heapq.merge(*(one_file(f) for f in bag_files(path)), key=lambda m: m[0])
+
+
+def iter_bag_messages(path: str | Path, topics: list[str],
+                      stats: BagReadStats | None = None) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time in ns, decoded message) of ``topics`` in log-time order (per chunk;
+    files merged by log time). Damaged chunks, messages over MAX_MESSAGE_BYTES and messages that
+    do not decode are skipped and counted in ``stats``; only ``topics`` are decoded."""
+    stats = stats if stats is not None else BagReadStats()
+    for log_time, topic, decoded in _bag_records(path, topics, stats, _decode_message):
         yield topic, log_time, decoded
 
 
@@ -524,7 +587,7 @@ class BagSample:
 
     stream: str  # "excitation" or "response"
     stamp: float  # header stamp or log time (s): the time of the LAST sample
-    values: np.ndarray
+    values: np.ndarray | float  # a float: one sample
     log_time: int  # ns
 
 
@@ -533,13 +596,37 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
     """The excitation and response samples of the bag, message by message in log-time order.
     When both specs name the same topic, each message feeds both streams. A message without the
     field is skipped and counted in ``stats.field_errors`` (``check_fields`` first rejects a field
-    that no message has)."""
+    that no message has).
+
+    Each field is read straight from the serialized message with the layout of the bag's own
+    ``ros2msg`` schema (``cdr.schema_extractor``: no message is built, ~10x less time per
+    100-double message than decoding it); a message it cannot read (or a schema it cannot parse)
+    is decoded in full, which names what is wrong exactly as before."""
     stats = stats if stats is not None else BagReadStats()
     check_topics(path, (excitation, response))
     roles: dict[str, list[tuple[str, StreamSpec]]] = {}
     for role, spec in (("excitation", excitation), ("response", response)):
         roles.setdefault(spec.topic, []).append((role, spec))
-    for topic, log_time, msg in iter_bag_messages(path, list(roles), stats):
+    readers: dict[tuple[str, int], list | None] = {}
+
+    def decode(file: Path, decoders: _Decoders, channel, record, stats: BagReadStats) -> Any:
+        key = (str(file), channel.id)
+        if key not in readers:
+            readers[key] = _field_readers(decoders, channel, roles[channel.topic])
+        extractors = readers[key]
+        if extractors is not None:
+            try:
+                return _Read([extract(record.data) for extract in extractors])
+            except (UsageError, ValueError, IndexError):
+                pass  # the full decode says what is wrong
+        return _decode_message(file, decoders, channel, record, stats)
+
+    for log_time, topic, msg in _bag_records(path, list(roles), stats, decode):
+        if isinstance(msg, _Read):
+            stamp = msg.fields[0][1] or log_time * 1e-9
+            for (role, _), (values, _) in zip(roles[topic], msg.fields, strict=True):
+                yield BagSample(role, stamp, values, log_time)
+            continue
         stamp = message_stamp(msg)
         stamp = log_time * 1e-9 if not stamp else stamp
         for role, spec in roles[topic]:
@@ -550,6 +637,29 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
                 stats.note(topic, str(exc))
                 continue
             yield BagSample(role, stamp, values, log_time)
+
+
+@dataclass(frozen=True, eq=False)
+class _Read:
+    """(values, stamp) of each role's field, read from the serialized message."""
+
+    fields: list
+
+
+def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSpec]]) -> list | None:
+    """``cdr.schema_extractor`` of each spec's field on this channel, or None (decode in full)
+    when the channel is not CDR with a ros2msg schema or one field cannot be read that way."""
+    from ..ros.cdr import schema_extractor
+
+    schema = decoders.schemas.get(channel.schema_id)
+    if schema is None or channel.message_encoding != "cdr" or schema.encoding != "ros2msg":
+        return None
+    try:
+        text = schema.data.decode()
+    except UnicodeDecodeError:
+        return None
+    extractors = [schema_extractor(schema.name, text, spec.field) for _, spec in specs]
+    return None if any(e is None for e in extractors) else extractors
 
 
 def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec: str | None = None,

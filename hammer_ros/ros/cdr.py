@@ -9,6 +9,12 @@ header whose second byte gives the byte order, then the fields in order, each pr
 aligned to its size relative to the end of that header, strings and sequences as a uint32
 count then their elements, nested messages inline, fixed arrays without a count.
 
+The layout comes either from an installed message class's introspection
+(``raw_extractor``, the node) or from the ``ros2msg`` schema text a bag stores beside its
+messages (``schema_extractor``, replay: the bag's own definition, whatever is installed; parsed
+by ``definition_fields``), as field name -> IDL type (``double``, ``sequence<double>``,
+``std_msgs/Header``) in both cases.
+
 ``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` the
 samples of ``field_path.extract_samples`` (a float for one, else a float64 array) and ``stamp`` the
 header stamp in seconds (0.0 for none), or None when the path cannot be read this way
@@ -39,6 +45,12 @@ _ARRAY = re.compile(r"^(.+)\[(\d+)\]$")
 _BOUNDED_STRING = re.compile(r"^string<\d+>$")
 
 Skip = Callable[[bytes, int, str], int]  # (data, position after the header, byte order) -> position
+Fields = Callable[[str], dict[str, str]]  # a nested type 'pkg/Name' -> its field names and IDL types
+Extract = Callable[[bytes], tuple[float | np.ndarray, float]]  # serialized message -> (values, stamp)
+MSG_TO_IDL = {"float64": "double", "float32": "float", "bool": "boolean", "byte": "octet", "char": "uint8",
+              **{t: t for t in ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
+                                "string", "wstring")}}
+_MSG_FIELD = re.compile(r"^([A-Za-z0-9_/]+)(?:<=(\d+))?(?:\[(<=)?(\d*)\])?$")
 
 
 class UnsupportedLayout(Exception):
@@ -54,13 +66,64 @@ def _u32(data: bytes, pos: int, order: str) -> tuple[int, int]:
     return struct.unpack_from(order + "I", data, HEADER + pos)[0], pos + 4
 
 
-def _nested_class(type_name: str):
+def installed_fields(type_name: str) -> dict[str, str]:
+    """The fields of an installed message type 'pkg/Name' (or 'pkg/msg/Name')."""
     package, name = type_name.split("/")[0], type_name.split("/")[-1]
-    return getattr(importlib.import_module(f"{package}.msg"), name)
+    return getattr(importlib.import_module(f"{package}.msg"), name).get_fields_and_field_types()
 
 
-def _kind(type_name: str) -> tuple[str, Any, int | None]:
-    """('primitive', code-size, count) / ('string', None, count) / ('message', cls, count);
+def definition_fields(text: str, package: str) -> dict[str, str]:
+    """Field name -> IDL type of one ``.msg`` definition (the form of
+    ``get_fields_and_field_types``): ``float64[]`` -> ``sequence<double>``, ``float64[<=3]`` ->
+    ``sequence<double, 3>``, ``float64[9]`` -> ``double[9]``, ``string<=8`` -> ``string<8>``,
+    ``Header`` -> ``std_msgs/Header``, a bare ``Name`` -> ``package/Name``; constants
+    (``uint8 OK=0``) are left out. Raises UnsupportedLayout on a line it cannot read."""
+    fields = {}
+    for line in text.splitlines():
+        tokens = line.split("#", 1)[0].split(None, 1)
+        if not tokens:
+            continue
+        rest = tokens[1].strip() if len(tokens) > 1 else ""
+        name = re.match(r"^([A-Za-z_][A-Za-z0-9_]*)\s*(=)?", rest)
+        match = _MSG_FIELD.match(tokens[0])
+        if name is None or match is None:
+            raise UnsupportedLayout(line.strip())
+        if name.group(2):  # a constant
+            continue
+        base, bound, upper, size = match.groups()
+        if base in MSG_TO_IDL:
+            idl = MSG_TO_IDL[base] + (f"<{bound}>" if bound else "")
+        elif base == "Header":
+            idl = "std_msgs/Header"
+        else:
+            pkg, _, msg = base.rpartition("/")
+            idl = f"{pkg.split('/')[0] if pkg else package}/{msg}"
+        if match.group(0).endswith("]"):
+            idl = f"{idl}[{size}]" if size and not upper else f"sequence<{idl}{', ' + size if upper else ''}>"
+        fields[name.group(1)] = idl
+    return fields
+
+
+def schema_fields(name: str, text: str) -> dict[str, dict[str, str]]:
+    """'pkg/Name' -> fields (``definition_fields``) of every type in a ``ros2msg`` schema: the
+    named type's definition, then each nested type's after a line of '=' and ``MSG: pkg/Name``."""
+    sections = re.split(r"^=+\s*$", text, flags=re.MULTILINE)
+    types = {}
+    for i, section in enumerate(sections):
+        if i == 0:
+            type_name, body = name, section
+        else:
+            header = re.match(r"\s*MSG:\s*(\S+)\s*\n?", section)
+            if header is None:
+                raise UnsupportedLayout(f"schema {name}: a section without 'MSG: pkg/Name'")
+            type_name, body = header.group(1), section[header.end():]
+        parts = type_name.split("/")
+        types[f"{parts[0]}/{parts[-1]}"] = definition_fields(body, parts[0])
+    return types
+
+
+def _kind(type_name: str, nested: Fields) -> tuple[str, Any, int | None]:
+    """('primitive', code-size, count) / ('string', None, count) / ('message', fields, count);
     count None for one value, -1 for a sequence, k for a fixed array."""
     count: int | None = None
     match = _SEQUENCE.match(type_name)
@@ -75,13 +138,13 @@ def _kind(type_name: str) -> tuple[str, Any, int | None]:
     if type_name == "string" or _BOUNDED_STRING.match(type_name):
         return "string", None, count
     if "/" in type_name:
-        return "message", _nested_class(type_name), count
+        return "message", nested(type_name), count
     raise UnsupportedLayout(type_name)  # wstring and anything unknown
 
 
-def _skipper(type_name: str) -> Skip:
+def _skipper(type_name: str, nested: Fields) -> Skip:
     """A function that moves past one field of ``type_name``."""
-    kind, what, count = _kind(type_name)
+    kind, what, count = _kind(type_name, nested)
     if kind == "primitive":
         size = what[1]
         if count is None:
@@ -93,7 +156,7 @@ def _skipper(type_name: str) -> Skip:
             n, pos = _u32(data, pos, order)
             return _align(pos, size) + n * size if n else pos
         return sequence
-    one = _skip_string if kind == "string" else _message_skipper(what)
+    one = _skip_string if kind == "string" else _message_skipper(what, nested)
     if count is None:
         return one
 
@@ -114,8 +177,8 @@ def _skip_string(data: bytes, pos: int, order: str) -> int:
     return pos + n
 
 
-def _message_skipper(cls) -> Skip:
-    skips = [_skipper(t) for t in cls.get_fields_and_field_types().values()]
+def _message_skipper(fields: dict[str, str], nested: Fields) -> Skip:
+    skips = [_skipper(t, nested) for t in fields.values()]
 
     def skip(data: bytes, pos: int, order: str) -> int:
         for one in skips:
@@ -124,12 +187,12 @@ def _message_skipper(cls) -> Skip:
     return skip
 
 
-def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath) -> Callable:
+def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath, nested: Fields) -> Callable:
     """Read the target field at a position: a float, a float64 array, or a Time in seconds."""
-    kind, what, count = _kind(type_name)
+    kind, what, count = _kind(type_name, nested)
     if kind == "message" and count is None and not indices and \
-            set(what.get_fields_and_field_types()) == {"sec", "nanosec"}:  # builtin_interfaces Time / Duration
-        sec_code = PRIMITIVES[what.get_fields_and_field_types()["sec"]][0]
+            set(what) == {"sec", "nanosec"}:  # builtin_interfaces Time / Duration
+        sec_code = PRIMITIVES[what["sec"]][0]
 
         def time(data: bytes, pos: int, order: str):
             pos = _align(pos, 4)
@@ -162,29 +225,51 @@ def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath) ->
     return elements
 
 
-def raw_extractor(cls, path: FieldPath) -> Callable[[bytes], tuple[float | np.ndarray, float]] | None:
+def raw_extractor(cls, path: FieldPath) -> Extract | None:
     """``extract(data) -> (values, stamp)`` for serialized messages of ``cls`` (see the module
     docstring), or None when ``path`` is not readable from raw CDR here."""
     try:
-        skips: list[Skip] = []  # the fields before the path's field, level by level
-        current = cls
-        for i, step in enumerate(path.steps):
-            fields = current.get_fields_and_field_types()
-            if step.name not in fields:
-                return None
-            names = list(fields)
-            skips += [_skipper(fields[n]) for n in names[: names.index(step.name)]]
-            if i < len(path.steps) - 1:
-                kind, current, count = _kind(fields[step.name])
-                if kind != "message" or count is not None or step.indices:
-                    return None
-            else:
-                read = _reader(fields[step.name], step.indices, path)
-        fields = cls.get_fields_and_field_types()
-        stamp = _reader("builtin_interfaces/Time", (), path) \
-            if next(iter(fields), None) == "header" and fields["header"] == "std_msgs/Header" else None
+        return _extractor(cls.get_fields_and_field_types(), path, installed_fields, whole=False)
     except (UnsupportedLayout, ImportError, AttributeError):
         return None
+
+
+def schema_extractor(name: str, text: str, path: FieldPath) -> Extract | None:
+    """``raw_extractor`` for messages of the ``ros2msg`` schema ``text`` of type ``name`` (a
+    bag's own definition, ``schema_fields``), or None when the schema or the path cannot be read
+    this way. ``extract`` also walks the rest of the message and raises FieldError when it ends
+    early, so that a message it reads is one a full decoder reads too."""
+    def nested(type_name: str) -> dict[str, str]:
+        parts = type_name.split("/")
+        try:
+            return types[f"{parts[0]}/{parts[-1]}"]
+        except KeyError:
+            raise UnsupportedLayout(f"{type_name} is not in the schema") from None
+    try:
+        types = schema_fields(name, text)
+        return _extractor(nested(name), path, nested, whole=True)
+    except UnsupportedLayout:
+        return None
+
+
+def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: bool) -> Extract | None:
+    root = fields
+    skips: list[Skip] = []  # the fields before the path's field, level by level
+    for i, step in enumerate(path.steps):
+        if step.name not in fields:
+            return None
+        names = list(fields)
+        skips += [_skipper(fields[n], nested) for n in names[: names.index(step.name)]]
+        if i < len(path.steps) - 1:
+            kind, fields, count = _kind(fields[step.name], nested)
+            if kind != "message" or count is not None or step.indices:
+                return None
+        else:
+            read = _reader(fields[step.name], step.indices, path, nested)
+    if "header" in root and (next(iter(root)) != "header" or root["header"] != "std_msgs/Header"):
+        return None  # a header elsewhere: field_path.message_stamp's stamp is not read here
+    stamp = _reader("builtin_interfaces/Time", (), path, nested) if "header" in root else None
+    end = _message_skipper(root, nested) if whole else None
 
     def extract(data: bytes) -> tuple[float | np.ndarray, float]:
         if len(data) < HEADER:
@@ -195,6 +280,8 @@ def raw_extractor(cls, path: FieldPath) -> Callable[[bytes], tuple[float | np.nd
             for skip in skips:
                 pos = skip(data, pos, order)
             values = read(data, pos, order)
+            if end is not None and end(data, 0, order) > len(data) - HEADER:
+                raise struct.error("short")
             return values, (stamp(data, 0, order) if stamp is not None else 0.0)
         except struct.error:
             raise FieldError(f"field {path.text!r}: the message ends before it") from None
