@@ -296,3 +296,25 @@ def test_cls_with_a_partition_gives_a_piecewise_linear_map(g1, capsys, tmp_path)
     doc = json.loads(capsys.readouterr().out)
     assert doc["nonlinearity"]["kind"] == "piecewise_linear" and doc["nonlinearity"]["breakpoints"] == list(partition)
     assert doc["fit_percent"] > 95
+
+
+def test_least_squares_by_qr_equals_the_svd_solution():
+    """``least_squares_qr`` (one QR of [phi | target]) gives lstsq's solution on tall full-rank
+    problems, one or several targets, and hands a rank-deficient phi to the SVD (minimum norm)."""
+    from hammer_ros.identification.regression import least_squares_qr, solve_least_squares
+
+    rng = np.random.default_rng(0)
+    for rows, columns in ((101, 36), (4000, 4), (7, 6)):
+        phi = rng.normal(size=(rows, columns)) * np.logspace(0, 3, columns)
+        target = rng.normal(size=rows)
+        np.testing.assert_allclose(least_squares_qr(phi, target), np.linalg.lstsq(phi, target, rcond=None)[0],
+                                   rtol=1e-9, atol=1e-12)
+        targets = rng.normal(size=(rows, 3))
+        np.testing.assert_allclose(least_squares_qr(phi, targets), solve_least_squares(phi, targets),
+                                   rtol=1e-9, atol=1e-12)
+    phi = rng.normal(size=(50, 3))
+    phi = np.column_stack([phi, phi[:, 0] + phi[:, 1]])  # rank 3
+    target = rng.normal(size=50)
+    np.testing.assert_allclose(least_squares_qr(phi, target), np.linalg.lstsq(phi, target, rcond=None)[0],
+                               rtol=1e-9, atol=1e-12)
+    assert np.all(np.isnan(least_squares_qr(np.full((5, 2), np.nan), np.ones(5))))
