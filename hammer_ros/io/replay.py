@@ -131,6 +131,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         nonlocal last_ok, last
         last = outcome
         last_ok = last if last.ok else last_ok
+        if writer is None and publisher is None:  # nobody reads the messages (replay --json)
+            return
         stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
         messages = result_messages(last, stamp, frame_id)
         if not last.ok and last_ok is not None:
