@@ -20,7 +20,6 @@ import contextlib
 import functools
 import io
 import json
-import re
 import struct
 import sys
 import zlib
@@ -40,8 +39,6 @@ from .records import Record
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
 SCHEMA_SEPARATOR = "=" * 80
-PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32", "uint32",
-              "int64", "uint64", "string", "wstring"}
 # msg_config keys that are not engine settings
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
               "response_field")
@@ -737,19 +734,12 @@ def _msg_text(package: str, name: str) -> str:
 
 
 def _dependencies(text: str, package: str) -> list[tuple[str, str]]:
-    """The nested message types of a .msg text, as (package, name); constants (``byte OK=0``)
-    and primitive fields are skipped, a bare ``Name`` is in the same package."""
-    deps = []
-    for line in text.splitlines():
-        tokens = line.split("#", 1)[0].split()
-        if len(tokens) < 2 or "=" in line.split("#", 1)[0]:
-            continue
-        base = re.sub(r"(<=\d+)?(\[[^\]]*\])?$", "", tokens[0])
-        if base in PRIMITIVES:
-            continue
-        pkg, _, msg = base.rpartition("/")
-        deps.append((pkg.split("/")[0] if pkg else package, msg))
-    return deps
+    """The nested message types of a .msg text, as (package, name) (``cdr.definition_fields``:
+    constants and primitive fields are skipped, a bare ``Name`` is in the same package)."""
+    from ..ros.cdr import definition_fields, element_type
+
+    bases = [element_type(t) for t in definition_fields(text, package).values()]
+    return [(base.split("/")[0], base.split("/")[-1]) for base in bases if "/" in base]
 
 
 def node_topic(topic: str, node_name: str = "hammer_ros") -> str:

@@ -122,6 +122,12 @@ def schema_fields(name: str, text: str) -> dict[str, dict[str, str]]:
     return types
 
 
+def element_type(type_name: str) -> str:
+    """The element type of an IDL type: ``sequence<T>``, ``sequence<T, N>`` and ``T[N]`` -> T."""
+    match = _SEQUENCE.match(type_name) or _ARRAY.match(type_name)
+    return match.group(1).strip() if match else type_name
+
+
 def _kind(type_name: str, nested: Fields) -> tuple[str, Any, int | None]:
     """('primitive', code-size, count) / ('string', None, count) / ('message', fields, count);
     count None for one value, -1 for a sequence, k for a fixed array."""
