@@ -183,3 +183,23 @@ def test_replay_refine_refines_every_solve_and_fits_at_least_as_well(capsys):
     assert refined["refined"]["cost"] <= refined["refined"]["cost_start"]
     assert refined["rms"] <= plain["rms"] * 1.02
     assert refined["samples"] == plain["samples"]
+
+
+def test_the_solver_process_is_started_only_when_the_solves_outweigh_its_start(capsys, monkeypatch):
+    """The sample bag's 2 solves per second (over 20 CLS solves, well below OVERLAP_SECONDS) run
+    in process; with the threshold at zero the same replay runs them in a SolverProcess, with
+    the same model."""
+    import hammer_ros.cli.replay as replay_cli
+
+    started = []
+    real = replay_cli.SolverProcess
+    monkeypatch.setattr(replay_cli, "SolverProcess", lambda: started.append(1) or real())
+    argv = ("replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "2", "--json")
+    alone = run_json(capsys, *argv)
+    assert not started and alone["solves"] > 20
+    monkeypatch.setattr(replay_cli, "OVERLAP_SECONDS", 0.0)
+    beside = run_json(capsys, *argv)
+    assert started == [1]
+    for doc in (alone, beside):
+        doc.pop("wall_s")
+    assert beside == alone

@@ -10,11 +10,12 @@ SIGINT/SIGTERM stop it at the next message: a final solve on what was read, ``--
 and closed, the final model printed, exit 128 + signal (``SignalStop``).
 
 Solves happen every 1 / solve_rate seconds of bag time (``--solve-rate``, else the config's
-``solve_rate``, else 2 Hz) and once at the end of the bag. When that makes OVERLAP_SOLVES or
-more and the bag is not paced, they run in a ``SolverProcess`` while the reading goes on (the
-same output, in less wall time on a machine with a second core). Settings: command-line options, else
-the ``--config`` parameters, else the engine defaults (tau_max: the method's batch default, so
-that a replay with a window holding the whole bag equals ``identify`` on it).
+``solve_rate``, else 2 Hz) and once at the end of the bag. When they are expected to take
+OVERLAP_SECONDS or more and the bag is not paced, they run in a ``SolverProcess`` while the
+reading goes on (the same output, in less wall time when the solves outweigh the worker's start).
+Settings: command-line options, else the ``--config`` parameters, else the engine defaults
+(tau_max: the method's batch default, so that a replay with a window holding the whole bag
+equals ``identify`` on it).
 """
 
 from __future__ import annotations
@@ -43,7 +44,21 @@ from ..streaming.solver_process import SolverProcess
 from .common import check_option_conflicts, format_model
 
 DEFAULT_SOLVE_RATE = 2.0
-OVERLAP_SOLVES = 20  # from this many periodic solves on, they run in a SolverProcess beside the reading
+# The periodic solves run in a SolverProcess beside the reading when they are expected to take at least
+# OVERLAP_SECONDS in process: solves x the typical solve (2-core bench machine, W = 4000: CLS on the window's
+# correlation sums 1.5 ms; the methods on the raw window 7 ms, growing with W). Below that the worker's start
+# (~1.1 s of wall time) and its share of the second core cost more than it saves: measured side by side,
+# 39 solves 0.7 s in process against 1.8 s with the worker, 399 solves 1.3 against 2.9 s, 199 solves on a
+# 100 000-message bag 4.9-5.5 against 5.7 s.
+OVERLAP_SECONDS = 3.0
+CLS_SOLVE_SECONDS, RAW_WINDOW_SOLVE_SECONDS = 0.0015, 0.007
+
+
+def expected_solve_seconds(config: EngineConfig, solves: float) -> float:
+    """In-process time of ``solves`` periodic solves of ``config``'s method (see OVERLAP_SECONDS)."""
+    if config.method in CLS_STRUCTURES:
+        return solves * CLS_SOLVE_SECONDS
+    return solves * RAW_WINDOW_SOLVE_SECONDS * max(1.0, config.window / 4000)
 
 
 def replay_settings(args: argparse.Namespace, params: dict, source: str) -> tuple[EngineConfig, float]:
@@ -143,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     publisher = solver = None
     stop = SignalStop()
     try:
-        if args.rate is None and solve_rate * bag_duration(args.bag) >= OVERLAP_SOLVES:
+        if args.rate is None and expected_solve_seconds(config, solve_rate * bag_duration(args.bag)) >= OVERLAP_SECONDS:
             solver = SolverProcess()
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
