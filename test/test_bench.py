@@ -102,3 +102,26 @@ def test_the_rate_ladder_brackets_each_limit_and_narrows_it():
         lossy = [r for w, r in runs if w == who and r > limit]
         assert len(lossy) <= 1 + bench.REFINE_STEPS, (who, lossy)
     assert first_loss["bare"] > 8500.0 and len(tried) == len(calls)
+
+
+def test_a_node_that_refuses_a_rate_is_reported_not_measured():
+    """A node that exits at startup (e.g. a sample rate out of its parameter range) is neither a
+    lossless nor a lossy measurement of throughput: its reason is in the ``tried`` line and the
+    node's figure stays the last rate it ran at."""
+    def probe(rates, batch, seconds, subscribers):
+        rows = []
+        for who in subscribers:
+            if who == "bare":
+                rows.append({"subscriber": "bare rclpy", "messages": rates[0] * seconds, "publish_seconds": seconds,
+                             "lost": 0 if rates[0] <= 12_000 else 100})
+            elif rates[0] > 6_000:  # what ros_rate_probe._node returns for a node that exited
+                rows.append({"subscriber": "hammer_ros node", "messages": 0, "publish_seconds": 0.0, "lost": 0,
+                             "error": "node exited 2: sample_rate: out of range"})
+            else:
+                rows.append({"subscriber": "hammer_ros node", "messages": rates[0] * seconds,
+                             "publish_seconds": seconds, "lost": 0})
+        return rows
+
+    best, first_loss, tried = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
+    assert best["node"] == 5000.0 and 6000.0 < first_loss["node"] <= 8500.0
+    assert any("node exited 2: sample_rate: out of range" in line for line in tried)

@@ -7,6 +7,7 @@ by both is ``node_core.IdentificationCore``.
 
 from __future__ import annotations
 
+import gc
 import sys
 
 from .environment import prepare_ros_environment
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     node = None
     try:
         node = ManagedIdentificationNode() if managed else IdentificationNode()
+        gc.freeze()  # what is alive now (modules, rclpy, the node) is never traversed by a full collection
         executor = EventsExecutor()
         executor.add_node(node)
         while rclpy.ok() and not node.finalized:

@@ -25,6 +25,7 @@ import re
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
 from importlib import import_module
 from typing import Any
@@ -99,7 +100,7 @@ PARAMETERS: dict[str, Spec] = {
     "response_topic": Spec("/response", "str", "topic of the response (sensor) y"),
     "response_type": Spec("std_msgs/msg/Float64", "str", "message type of response_topic"),
     "response_field": Spec("data", "str", "field path of y"),
-    "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e6),
+    "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e8),
     "window": Spec(4000, "int", "W: samples in the sliding window", 16, MAX_WINDOW),
     "forgetting": Spec(1.0, "float", "1 = exact sliding window; < 1 = exponential forgetting factor", 0.0, 1.0),
     "method": Spec("cls-markov", "str", "identification method", choices=STREAMING_METHODS),
@@ -127,7 +128,8 @@ PARAMETERS: dict[str, Spec] = {
     "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
                              "grows faster than linearly: ~2 s for 10^4 samples)", 100, MAX_WINDOW),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
-    "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
+    "qos_depth": Spec(10_000, "int", "history depth of the input subscriptions (what a stall of the node's "
+                      "executor can queue without a loss)", 1, 1_000_000, read_only=True),
     "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
                         "does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000, read_only=True),
     "output_mcap": Spec("", "str", "record every published result in this MCAP file, finished on shutdown "
@@ -237,6 +239,8 @@ class _Input:
         self.subscription = None
         self.path: FieldPath | None = None
         self.raw = None  # cdr.raw_extractor(type, path): samples and stamp from serialized messages
+        self.read = None  # message (serialized or built by rclpy) -> (samples, header stamp or 0.0)
+        self.message_samples = 1  # samples of the last message read: what a queued message counts
         self.field_errors = 0
         self.last_error = ""
         self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
@@ -303,10 +307,10 @@ class IdentificationCore:
         self._pending: dict[str, list] = {s: [] for s in STREAMS}
         self._pending_samples = 0
         self.engine = StreamingEngine(config)
-        if self.values["solver_process"]:
-            self.solver = SolverProcess()
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
+        if self.values["solver_process"]:
+            self.solver = SolverProcess()
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         for topic, type_name in [*OUTPUT_TOPICS, ("~/diagnosis", DIAGNOSIS_TYPE)]:
@@ -394,6 +398,8 @@ class IdentificationCore:
         cls = message_class(self.values[f"{stream}_type"])
         source.path = parse_field_path(self.values[f"{stream}_field"])
         source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
+        source.read = source.raw or (lambda msg, path=source.path: (extract_samples(msg, path),
+                                                                     message_stamp(msg) or 0.0))
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
         def on_lost(info, source=source) -> None:
@@ -404,28 +410,24 @@ class IdentificationCore:
             event_callbacks=SubscriptionEventCallbacks(message_lost=on_lost), raw=source.raw is not None)
 
     def _on_message(self, stream: str, msg) -> None:
-        """Subscription callback: extract the samples and queue them (no engine work here).
-        ``msg`` is the serialized message when the field is read from raw CDR."""
+        """Subscription callback: queue the message with its arrival time, nothing more. The
+        executor thread is what limits the node's message rate, so the samples are read from the
+        message (``_Input.read``: raw CDR or rclpy's message) in the ingest thread. The queue is
+        bounded at max_pending samples, a message counted at the size of its stream's last one."""
         receive = time.time()
         source = self.inputs[stream]
-        try:
-            if source.raw is not None:
-                values, stamp = source.raw(msg)
-            else:
-                values, stamp = extract_samples(msg, source.path), message_stamp(msg) or 0.0
-        except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
-            source.field_errors += 1
-            source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
-            self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
-            return
-        size = 1 if type(values) is float else values.size
-        item = (receive, stamp, values)  # stamp 0 = none or unset: place by counting
         with self._pending_lock:
-            if self._pending_samples + size > self.values["max_pending"]:  # bounded: a flood is dropped
+            if self._pending_samples + source.message_samples > self.values["max_pending"]:  # a flood is dropped
                 source.queue_dropped += 1
                 return
-            self._pending[stream].append(item)
-            self._pending_samples += size
+            self._pending[stream].append((receive, msg, source.read))  # read: of the subscription it came by
+            self._pending_samples += source.message_samples
+
+    def _bad_message(self, stream: str, exc: Exception) -> None:
+        source = self.inputs[stream]
+        source.field_errors += 1
+        source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
+        self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
 
     def _flush(self) -> None:
         """Move the queued samples into the engine: one vectorised add of both streams,
@@ -437,17 +439,24 @@ class IdentificationCore:
             batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
             self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
 
-    def _stamped(self, stream: str, items: list[tuple[float, float, float | np.ndarray]]) -> tuple | None:
-        """(stamps, values) of one stream's queued messages (None when none could be placed).
-        Per message only its first stamp is found; the stamps of all samples are then made at
-        once, ``first + k / fs`` for the k-th sample of each message."""
+    def _stamped(self, stream: str, items: list[tuple[float, Any, Callable]]) -> tuple | None:
+        """(stamps, values) of one stream's queued messages (None when none could be placed): each
+        message's samples read (a bad one counted and skipped), then per message only its first
+        stamp found; the stamps of all samples are made at once, ``first + k / fs`` for the k-th
+        sample of each message."""
         firsts: list[float] = []
         sizes: list[int] = []
         values: list = []
         explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
         total = 0
-        for receive, stamp, x in items:
-            n = 1 if type(x) is float else x.size
+        source = self.inputs[stream]
+        for receive, msg, read in items:
+            try:
+                x, stamp = read(msg)
+            except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
+                self._bad_message(stream, exc)
+                continue
+            n = source.message_samples = 1 if type(x) is float else x.size
             if n == 0:
                 continue
             if stamp and n == 1:
@@ -521,6 +530,7 @@ class IdentificationCore:
             if streams:  # a new signal: the window restarts
                 with self._pending_lock:
                     self._pending = {s: [] for s in STREAMS}
+                    self._pending_samples = 0
                 self.engine = StreamingEngine(config)
                 self.stamper.set_rate(config.sample_rate)
                 for stream in streams if self.active else ():

@@ -307,6 +307,8 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
         who = SUBSCRIBER_KEYS.get(row["subscriber"], "bare")
         achieved = row["messages"] / max(row["publish_seconds"], 1e-9)
         lost[who] = row["lost"] if achieved >= 0.95 * rate else f"publisher {achieved:.0f}/s"
+        if "error" in row:  # the node did not run at this rate
+            lost[who] = row["error"]
         if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement
             lost[who] = "no Foxglove message"
     tried.append(f"{rate:g}: {lost.get('node', '-')} / {lost.get('bare', '-')} / {lost.get('foxglove', '-')}")

@@ -6,7 +6,7 @@ rclpy subscriber (EventsExecutor in a spin_once loop), on a private ROS_DOMAIN_I
 For each rate R a publisher process sends R messages/s on each of /command and /response
 (std_msgs/Float64, or Float64MultiArray of ``--batch`` samples; reliable, depth 1000) for
 ``--seconds`` seconds, once to a bare subscriber (this process, with the node's QoS: best
-effort, depth 1000) and once to a fresh
+effort, the node's default ``qos_depth``) and once to a fresh
 ``hammer-ros node`` (whose /diagnostics counters are read back). A rate is sustained when every
 published sample was received. Output: one JSON document per line on stdout. Reusable by
 ``hammer-ros bench`` through :func:`probe`.
@@ -103,7 +103,9 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
     msg_type = Float64 if batch == 1 else Float64MultiArray
     from rclpy.qos import QoSProfile, qos_profile_sensor_data
 
-    qos = QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
+    from ..ros.node_core import PARAMETERS
+
+    qos = QoSProfile(depth=PARAMETERS["qos_depth"].default, reliability=qos_profile_sensor_data.reliability,
                      durability=qos_profile_sensor_data.durability)  # what the node subscribes with
     subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), qos)
             for topic in TOPICS]
@@ -214,7 +216,11 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
                               f"foxglove_port:={port}"], batch)
     client = None
     try:
-        _spin_until(executor, lambda: bool(latest), MATCH_TIMEOUT)  # up once it publishes diagnostics
+        _spin_until(executor, lambda: bool(latest) or ident.poll() is not None, MATCH_TIMEOUT)  # up: diagnostics
+        if ident.poll() is not None:  # refused its parameters (or crashed): not a measurement
+            reason = (ident.stderr.read().strip().splitlines() or ["no output"])[-1]
+            return {"subscriber": "hammer_ros node" + (" + foxglove client" if foxglove else ""), "received": 0,
+                    "messages": 0, "publish_seconds": 0.0, "error": f"node exited {ident.returncode}: {reason}"}
         if foxglove:
             client = _FoxgloveClient(port)
             _spin_until(executor, lambda: client.messages > 0, MATCH_TIMEOUT)  # connected and receiving
@@ -228,7 +234,11 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
         if client is not None:
             client.close()
         ident.terminate()
-        ident.communicate(timeout=10)
+        try:
+            ident.communicate(timeout=10)
+        except subprocess.TimeoutExpired:  # still finishing its backlog: not part of the measurement
+            ident.kill()
+            ident.communicate()
         node.destroy_subscription(sub)
     received = min(int(latest.get(k, 0)) for k in ("received_excitation", "received_response"))
     return {"subscriber": "hammer_ros node" + (" + foxglove client" if foxglove else ""), "received": received,
