@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hammer_ros.ros.cdr import raw_extractor
+from hammer_ros.ros.cdr import extract_batch, raw_extractor
 from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 
@@ -168,3 +168,45 @@ def test_a_schema_definition_in_msg_form():
         "d": "string<8>", "e": "geometry_msgs/Vector3", "f": "my_msgs/Point", "g": "boolean"}
     assert schema_extractor("my_msgs/msg/Odd", "float64 x\n", parse_field_path("y")) is None  # no such field
     assert schema_extractor("my_msgs/msg/Odd", "Unknown u\nfloat64 x\n", parse_field_path("x")) is None
+
+
+def test_many_messages_of_one_layout_are_read_at_once_with_the_same_values():
+    """``extract_batch`` (the node's ingest of a flush) equals reading each message, and gives up
+    (None: one by one) when the messages differ in layout or carry a header stamp."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float32MultiArray, Float64, Float64MultiArray, MultiArrayDimension
+
+    rng = np.random.default_rng(4)
+    cases = [
+        ([Float64MultiArray(data=list(rng.standard_normal(100))) for _ in range(50)], "data[:]"),
+        ([Float64(data=float(x)) for x in rng.standard_normal(50)], "data"),
+        ([Float32MultiArray(data=list(rng.standard_normal(7))) for _ in range(9)], "data[:]"),
+    ]
+    for msgs, text in cases:
+        extract = raw_extractor(type(msgs[0]), parse_field_path(text))
+        data = [serialize_message(m) for m in msgs]
+        block = extract_batch(extract, data)
+        assert block is not None and block.dtype == np.float64, text
+        assert block.tolist() == [np.atleast_1d(extract(d)[0]).tolist() for d in data], text
+
+    path = parse_field_path("data[:]")
+    extract = raw_extractor(Float64MultiArray, path)
+    plain = Float64MultiArray(data=[1.0, 2.0, 3.0])
+    labelled = Float64MultiArray(data=[1.0, 2.0, 3.0])  # same length, another layout before the data
+    labelled.layout.data_offset = 5
+    assert len(serialize_message(plain)) == len(serialize_message(labelled))
+    assert extract_batch(extract, [serialize_message(plain), serialize_message(labelled)]) is None
+    dims = Float64MultiArray(data=[1.0])
+    dims.layout.dim = [MultiArrayDimension(label="x", size=1, stride=1)]
+    assert extract_batch(extract, [serialize_message(plain), serialize_message(dims)]) is None  # lengths differ
+    one = Float64MultiArray(data=[4.0, 5.0])  # 2 samples after one dimension: the length of 4 without any
+    one.layout.dim = [MultiArrayDimension(label="x", size=2, stride=2)]
+    four = Float64MultiArray(data=[6.0, 7.0, 8.0, 9.0])
+    both = [serialize_message(one), serialize_message(four)]
+    assert len(both[0]) == len(both[1]) and extract_batch(extract, both) is None
+    assert extract_batch(raw_extractor(Float64MultiArray, parse_field_path("data[1]")),
+                         [serialize_message(plain)]) is None  # one element: read one by one
+    joint = JointState(position=[0.5])
+    assert extract_batch(raw_extractor(JointState, parse_field_path("position[:]")),
+                         [serialize_message(joint)]) is None  # a header: its stamp is read per message

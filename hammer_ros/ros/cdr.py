@@ -20,6 +20,8 @@ samples of ``field_path.extract_samples`` (a float for one, else a float64 array
 header stamp in seconds (0.0 for none), or None when the path cannot be read this way
 (wide strings, a non-numeric target): the caller then subscribes to messages as usual. A
 payload that is short or whose counts lie raises FieldError naming the field.
+``extract_batch(extract, messages)`` reads the whole-array (or scalar) field of many messages
+without a header at once, when they share one layout (the node's ingest of a flush).
 """
 
 from __future__ import annotations
@@ -208,18 +210,23 @@ def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath, ne
     if kind != "primitive" or what[0] == "?" or len(indices) > (0 if count is None else 1):
         raise UnsupportedLayout(type_name)
     code, size = what
+    dtype = np.dtype(code).newbyteorder("<")
     if count is None:
         def scalar(data: bytes, pos: int, order: str):
             return float(struct.unpack_from(order + code, data, HEADER + _align(pos, size))[0])
+        scalar.located, scalar.dtype = (lambda data, pos, order: (HEADER + _align(pos, size), 1)), dtype
         return scalar
-    dtype = np.dtype(code).newbyteorder("<")
     index = indices[0] if indices else None
 
-    def elements(data: bytes, pos: int, order: str):
+    def located(data: bytes, pos: int, order: str) -> tuple[int, int]:
+        """(byte offset in ``data``, element count) of the array at ``pos``."""
         n = count
         if n < 0:
             n, pos = _u32(data, pos, order)
-        start = HEADER + (_align(pos, size) if n else pos)
+        return HEADER + (_align(pos, size) if n else pos), n
+
+    def elements(data: bytes, pos: int, order: str):
+        start, n = located(data, pos, order)
         if start + n * size > len(data):
             raise FieldError(f"field {path.text!r}: the message ends inside it ({n} elements claimed)")
         values = np.frombuffer(data, dtype if order == "<" else dtype.newbyteorder(">"), n, start)
@@ -228,6 +235,8 @@ def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath, ne
         if not -n <= index < n:
             raise FieldError(f"field {path.text!r}: index {index} out of range, {n} elements")
         return float(values[index])
+    if index is None:  # the whole array: readable from many messages at once (``extract_batch``)
+        elements.located, elements.dtype = located, dtype
     return elements
 
 
@@ -277,6 +286,13 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
     stamp = _reader("builtin_interfaces/Time", (), path, nested) if "header" in root else None
     end = _message_skipper(root, nested) if whole else None
 
+    def locate(data: bytes) -> tuple[int, int]:
+        order = ">" if data[1] == 0 else "<"
+        pos = 0
+        for skip in skips:
+            pos = skip(data, pos, order)
+        return read.located(data, pos, order)
+
     def extract(data: bytes) -> tuple[float | np.ndarray, float]:
         if len(data) < HEADER:
             raise FieldError(f"field {path.text!r}: a {len(data)}-byte message")
@@ -291,4 +307,34 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
             return values, (stamp(data, 0, order) if stamp is not None else 0.0)
         except struct.error:
             raise FieldError(f"field {path.text!r}: the message ends before it") from None
+    if stamp is None and end is None and hasattr(read, "located"):
+        extract.locate, extract.dtype = locate, read.dtype
     return extract
+
+
+def extract_batch(extract: Extract, messages: list[bytes]) -> np.ndarray | None:
+    """The samples of many serialized messages at once, as an (m, n) float64 array, for an
+    ``extract`` of a whole array in messages without a header (``raw_extractor``): the array's
+    place and length are found in the first message, and every other message must have the
+    first one's length and the same bytes up to the array (so the same layout: its array is
+    at the same place with the same count). None when ``extract`` cannot be batched or the
+    messages differ: read them one by one (which also names what is wrong with a bad one)."""
+    locate = getattr(extract, "locate", None)
+    if locate is None or not messages:
+        return None
+    first = messages[0]
+    if len(first) < HEADER or len(set(map(len, messages))) != 1:
+        return None
+    try:
+        start, n = locate(first)
+    except struct.error:
+        return None
+    width = n * extract.dtype.itemsize
+    if start + width > len(first):
+        return None
+    block = np.frombuffer(b"".join(messages), np.uint8).reshape(len(messages), len(first))
+    if start and not (block[:, :start] == block[0, :start]).all():
+        return None
+    order = ">" if first[1] == 0 else "<"
+    values = block[:, start : start + width].copy().view(extract.dtype.newbyteorder(order))
+    return values if values.dtype == np.float64 and order == "<" else values.astype(np.float64)

@@ -56,7 +56,7 @@ from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
 from ..streaming.solver_process import SolverProcess  # noqa: E402
-from .cdr import raw_extractor  # noqa: E402
+from .cdr import extract_batch, raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .outputs import (  # noqa: E402
@@ -128,8 +128,7 @@ PARAMETERS: dict[str, Spec] = {
     "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
                              "grows faster than linearly: ~2 s for 10^4 samples)", 100, MAX_WINDOW),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
-    "qos_depth": Spec(10_000, "int", "history depth of the input subscriptions (what a stall of the node's "
-                      "executor can queue without a loss)", 1, 1_000_000, read_only=True),
+    "qos_depth": Spec(1000, "int", "history depth of the input subscriptions", 1, 1_000_000, read_only=True),
     "max_pending": Spec(1_000_000, "int", "samples queued between the callbacks and the engine; a message that "
                         "does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000, read_only=True),
     "output_mcap": Spec("", "str", "record every published result in this MCAP file, finished on shutdown "
@@ -450,12 +449,17 @@ class IdentificationCore:
         explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
         total = 0
         source = self.inputs[stream]
-        for receive, msg, read in items:
-            try:
-                x, stamp = read(msg)
-            except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
-                self._bad_message(stream, exc)
-                continue
+        read = items[0][2]  # serialized messages of one layout, all from one subscription: read at once
+        block = extract_batch(read, [m for _, m, _ in items]) if all(r is read for _, _, r in items) else None
+        for i, (receive, msg, read) in enumerate(items):
+            if block is not None:
+                x, stamp = block[i], 0.0
+            else:
+                try:
+                    x, stamp = read(msg)
+                except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
+                    self._bad_message(stream, exc)
+                    continue
             n = source.message_samples = 1 if type(x) is float else x.size
             if n == 0:
                 continue
