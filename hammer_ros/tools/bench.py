@@ -10,7 +10,7 @@ Sections (``--quick`` runs each on smaller sizes):
    forgetting; reference: the same three correlation functions (phi_vv, phi_yv, phi_yvv of
    paper 000 eq. 8, weighted for forgetting) of the whole record in one batch by real FFTs.
 2. **node**: the highest publish rate at which the live node loses no sample (single-sample and
-   100-sample messages) vs a bare rclpy subscriber (EventsExecutor in a spin_once loop), both
+   100-sample messages) vs a bare rclpy subscriber (EventsExecutor running its own loop, as the node), both
    over DDS on a private ROS_DOMAIN_ID (``ros_rate_probe``).
 3. **replay**: samples/s of ``hammer-ros replay`` on a generated bag vs a bare MCAP read + CDR
    decode (mcap_ros2) of the same bag and field.
@@ -370,7 +370,7 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                              "goal": None if ratio is None or foxglove_ratio is None
                              else ratio >= 0.9 and foxglove_ratio >= 0.9})
     section.notes.append("`ros_rate_probe`: one publisher process sends both topics (reliable, depth 1000) for the "
-                         "stated time, to the bare subscriber (EventsExecutor + spin_once, counting) and to a fresh "
+                         "stated time, to the bare subscriber (EventsExecutor, counting) and to a fresh "
                          "`hammer-ros node` (window 4000, cls-markov, 4 solves/s; its /diagnostics counters), and "
                          "to one more with its Foxglove server on (`foxglove_port`) and one WebSocket client "
                          "subscribed to every channel (goal: >= 0.9 of the node's rate, i.e. at most 10 % lower); "

@@ -1,5 +1,5 @@
 """How many messages per second reach a subscriber without loss: the hammer_ros node vs a bare
-rclpy subscriber (EventsExecutor in a spin_once loop), on a private ROS_DOMAIN_ID on loopback.
+rclpy subscriber (EventsExecutor running its own loop, as the node), on a private ROS_DOMAIN_ID on loopback.
 
     python -m hammer_ros.tools.ros_rate_probe [--rates 1000,5000,10000] [--batch 1] [--seconds 4]
 
@@ -96,12 +96,13 @@ def _finish(publisher: subprocess.Popen) -> dict:
 
 
 def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) -> dict:
-    """Count messages in this process (EventsExecutor + spin_once)."""
+    """Count messages in this process (EventsExecutor running its own loop, as the node)."""
     from std_msgs.msg import Float64, Float64MultiArray
 
     counts = {topic: 0 for topic in TOPICS}
     msg_type = Float64 if batch == 1 else Float64MultiArray
     from rclpy.qos import QoSProfile, qos_profile_sensor_data
+    from rclpy.task import Future
 
     from ..ros.node_core import PARAMETERS
 
@@ -109,16 +110,17 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
                      durability=qos_profile_sensor_data.durability)  # what the node subscribes with
     subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), qos)
             for topic in TOPICS]
+    never = Future()  # the executor's own event loop, as the node runs it (node.CHECK_SECONDS)
     publisher = _start_publisher(env, rate, seconds, batch)
     while publisher.poll() is None:
-        executor.spin_once(timeout_sec=0.05)
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
     settle = time.monotonic() + SETTLE_SECONDS
     while time.monotonic() < settle:
-        executor.spin_once(timeout_sec=0.05)
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
     for sub in subs:
         node.destroy_subscription(sub)
     sent = _finish(publisher)
-    return {"subscriber": "bare rclpy (EventsExecutor spin_once)", "received": min(counts.values()) * batch, **sent}
+    return {"subscriber": "bare rclpy (EventsExecutor)", "received": min(counts.values()) * batch, **sent}
 
 
 def _diagnostics_counters(node):
