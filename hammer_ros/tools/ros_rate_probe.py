@@ -110,7 +110,7 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
                      durability=qos_profile_sensor_data.durability)  # what the node subscribes with
     subs = [node.create_subscription(msg_type, topic, lambda m, t=topic: counts.__setitem__(t, counts[t] + 1), qos)
             for topic in TOPICS]
-    never = Future()  # the executor's own event loop, as the node runs it (node.CHECK_SECONDS)
+    never = Future()  # spin_until_future_complete on it: the executor's own event loop, as the node runs it
     publisher = _start_publisher(env, rate, seconds, batch)
     while publisher.poll() is None:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
