@@ -93,3 +93,30 @@ def test_a_pause_of_the_reference_stream_alone_moves_only_its_samples(rng):
             stamper.first_stamp("excitation", r, 1)
         y.append(stamper.first_stamp("response", r + 5e-5, 1))
     np.testing.assert_allclose(np.diff(y), 1 / RATE, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("rate", [RATE, 0.0])
+def test_a_flush_stamped_at_once_equals_one_message_at_a_time(rng, rate):
+    """``first_stamps`` (the node's ingest, one call per stream and flush) gives exactly the
+    floats of ``first_stamp`` per message, through stalls, a pause that restarts the count, a
+    receive clock that steps back, rate inference and flushes longer than the horizon."""
+    per_message = 10
+    t_u = receive_times(3000, rng, per_message=per_message)
+    t_u[1500:] += 1.0  # a publisher pause: the count restarts
+    t_u[2200:] -= 0.05  # the receive clock steps back (2.5 messages)
+    t_y = t_u + rng.uniform(0.0, 3e-4, t_u.size)
+    one, flushes = ArrivalStamper(rate, horizon=0.5), ArrivalStamper(rate, horizon=0.5)
+    expected, got = [], []
+    start = 0
+    while start < t_u.size:
+        stop = start + int(rng.choice([1, 3, 40, 400]))
+        for stream, t in (("excitation", t_u[start:stop]), ("response", t_y[start:stop])):
+            for r in t:
+                first = one.first_stamp(stream, float(r), per_message)
+                expected.append(np.nan if first is None else first)
+            got.extend(flushes.first_stamps(stream, t, per_message))
+        start = stop
+    np.testing.assert_array_equal(got, expected)
+    assert flushes.restarts == one.restarts >= 1
+    assert flushes.rate == RATE
+    assert np.isfinite(got).sum() > 0.9 * len(got)

@@ -442,7 +442,7 @@ class IdentificationCore:
         """(stamps, values) of one stream's queued messages (None when none could be placed): each
         message's samples read (a bad one counted and skipped), then per message only its first
         stamp found; the stamps of all samples are made at once, ``first + k / fs`` for the k-th
-        sample of each message."""
+        sample of each message. Messages of one layout without a header stamp: ``_counted``."""
         firsts: list[float] = []
         sizes: list[int] = []
         values: list = []
@@ -451,15 +451,14 @@ class IdentificationCore:
         source = self.inputs[stream]
         read = items[0][2]  # serialized messages of one layout, all from one subscription: read at once
         block = extract_batch(read, [m for _, m, _ in items]) if all(r is read for _, _, r in items) else None
-        for i, (receive, msg, read) in enumerate(items):
-            if block is not None:
-                x, stamp = block[i], 0.0
-            else:
-                try:
-                    x, stamp = read(msg)
-                except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
-                    self._bad_message(stream, exc)
-                    continue
+        if block is not None:
+            return self._counted(stream, [receive for receive, _, _ in items], block)
+        for receive, msg, read in items:
+            try:
+                x, stamp = read(msg)
+            except Exception as exc:  # FieldError, or anything odd in a message: counted, never fatal
+                self._bad_message(stream, exc)
+                continue
             n = source.message_samples = 1 if type(x) is float else x.size
             if n == 0:
                 continue
@@ -493,6 +492,19 @@ class IdentificationCore:
         for start, t in explicit:
             stamps[start:start + t.size] = t
         return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
+
+    def _counted(self, stream: str, receives: list[float], block: np.ndarray) -> tuple | None:
+        """``_stamped`` for messages of one layout without a header stamp (``extract_batch``'s
+        block, a row per message): the stamper counts the first samples of all of them at once."""
+        n = self.inputs[stream].message_samples = block.shape[1]
+        if n == 0:
+            return None
+        firsts = self.stamper.first_stamps(stream, np.array(receives), n)
+        placed = np.isfinite(firsts)
+        self.unplaced += n * (placed.size - int(np.count_nonzero(placed)))
+        if not placed.any():
+            return None
+        return (firsts[placed, None] + np.arange(n) / self.stamper.rate).ravel(), block[placed].ravel()
 
     def _ingest_loop(self, stop: threading.Event) -> None:
         while not stop.wait(FLUSH_PERIOD):

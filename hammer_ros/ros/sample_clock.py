@@ -127,6 +127,67 @@ class ArrivalStamper:
         s.count += count
         return first
 
+    def first_stamps(self, stream: str, receive_times: np.ndarray, count: int) -> np.ndarray:
+        """``first_stamp`` of consecutive messages of ``stream``, each of ``count`` samples,
+        received at ``receive_times`` (NaN where it gives None): the same floats, computed for
+        a whole flush at once. While nothing restarts the count or moves the stream's place,
+        the base of message m is the sliding minimum of the candidates over the horizon,
+
+            base_m = min(min{c_h : r_h >= r_m - horizon, h in the history}, min_{j <= m} c_j),
+
+        (the history's deque is that minimum's monotone queue); the first message that restarts,
+        moves the place, arrives out of order or lies a horizon after the flush's first one is
+        stamped by ``first_stamp``, and the rest of the flush resumes at once after it."""
+        r = np.asarray(receive_times, dtype=float)
+        firsts = np.empty(r.size)
+        i = 0
+        while i < r.size:
+            done = self._first_stamps_at_once(stream, r[i:], count, firsts[i:]) if self.rate > 0 else 0
+            if done == 0:
+                first = self.first_stamp(stream, float(r[i]), count)
+                firsts[i] = math.nan if first is None else first
+                done = 1
+            i += done
+        return firsts
+
+    def _first_stamps_at_once(self, stream: str, r: np.ndarray, count: int, out: np.ndarray) -> int:
+        """Stamp the longest prefix of ``r`` that ``first_stamps``' formula covers into ``out``
+        and update the state as ``first_stamp`` would; returns its length (0: none)."""
+        s = self._streams.get(stream)
+        reference = self._reference
+        if s is None or not s.history or s.place is None or reference is None or reference.place is None:
+            return 0
+        period = 1.0 / self.rate
+        m = np.arange(r.size)
+        candidates = r - (s.count + count * m + count - 1) * period
+        history_r = np.array([h[0] for h in s.history])
+        history_c = np.array([h[1] for h in s.history])
+        if history_r.size > 1 and np.any(np.diff(history_r) < 0):  # a receive clock that went back
+            return 0
+        oldest = np.searchsorted(history_r, r - self.horizon, side="left")  # first history entry still inside
+        inside = np.append(history_c, math.inf)[oldest]
+        bases = np.minimum(inside, np.minimum.accumulate(candidates))
+        previous = np.concatenate([[history_c[0]], bases[:-1]])
+        if s is reference:
+            x = (bases - self._anchor) * self.rate
+        else:
+            x = (bases - reference.history[0][1]) * self.rate
+        valid = ((np.diff(r, prepend=history_r[-1]) >= 0) & (np.abs(candidates - previous) <= self.resync)
+                 & (r - self.horizon <= r[0]) & (np.abs(x - s.place) <= 0.5 + HYSTERESIS))
+        done = int(np.argmin(valid)) if not valid.all() else r.size
+        if done == 0:
+            return 0
+        place = s.place if s is reference else s.place + reference.place
+        out[:done] = self._anchor + (place + s.count + count * m[:done]) * period
+        # the history's new deque: the entries still inside the horizon that no later candidate undercuts
+        keep_r = np.concatenate([history_r[oldest[done - 1]:], r[:done]])
+        keep_c = np.concatenate([history_c[oldest[done - 1]:], candidates[:done]])
+        later = np.minimum.accumulate(keep_c[::-1])[::-1]
+        kept = keep_c < np.append(later[1:], math.inf)
+        s.history = deque(zip(keep_r[kept].tolist(), keep_c[kept].tolist()))
+        s.count += count * done
+        return done
+
     def _infer(self, stream: str, receive_time: float, count: int) -> bool:
         if self._inference_stream is None:
             self._inference_stream = stream
