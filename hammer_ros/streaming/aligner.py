@@ -168,10 +168,12 @@ class StreamAligner:
         """Add (stamps, values) of both streams in pieces of at most pending_cap / 4 samples,
         always continuing the stream that is behind in time, so that a long batch of one stream
         (e.g. a 10^6-element array message) is aligned as it goes instead of overflowing the
-        pending buffer while the other stream's batch waits. Returns the samples accepted."""
+        pending buffer while the other stream's batch waits. The grid is emitted once a piece's
+        worth of samples has been added since the last time, and at the end (so once for a flush
+        of both streams). Returns the samples accepted."""
         piece = self.pending_cap // 4
         heads = {name: 0 for name in batches}
-        accepted = 0
+        accepted = added = 0
         while heads:
             def behind(name: str) -> float:
                 t = batches[name][0]
@@ -181,11 +183,15 @@ class StreamAligner:
             t, x = batches[name]
             start = heads[name]
             stop = min(t.size, start + piece)
-            accepted += self.add(name, t[start:stop], x[start:stop])
+            accepted += self.add(name, t[start:stop], x[start:stop], emit=False)
+            added += stop - start
             if stop >= t.size:
                 del heads[name]
             else:
                 heads[name] = stop
+            if added >= piece or not heads:
+                self._emit()
+                added = 0
         return accepted
 
     def _count_received(self, stream: str, n: int) -> None:
@@ -194,18 +200,25 @@ class StreamAligner:
         else:
             self.stats.received_response += n
 
-    def add(self, stream: str, t, x) -> int:
-        """Screen and add samples x at stamps t (s) to ``stream``; returns how many were accepted."""
+    def add(self, stream: str, t, x, emit: bool = True) -> int:
+        """Screen and add samples x at stamps t (s) to ``stream``; returns how many were accepted.
+        ``emit``: align what both streams hold now (else the caller does, ``add_both``)."""
         t = np.atleast_1d(np.asarray(t, dtype=float)).ravel()
         x = np.atleast_1d(np.asarray(x, dtype=float)).ravel()
         if t.size != x.size:
             raise ValueError(f"{stream}: {t.size} stamps for {x.size} samples")
         self._count_received(stream, x.size)
         with np.errstate(invalid="ignore"):
-            finite = np.isfinite(t) & np.isfinite(x) & (np.abs(x) <= MAX_ABS_SAMPLE)
-        self.stats.nan_skipped += int(x.size - finite.sum())
-        self.stats.bad_values[stream] += int(np.count_nonzero(~finite & np.isfinite(t)))
-        return self._add_screened(stream, t[finite], x[finite])
+            finite = np.isfinite(t) & (np.abs(x) <= MAX_ABS_SAMPLE)  # False for NaN and inf too
+        kept = int(np.count_nonzero(finite))
+        if kept < x.size:
+            self.stats.nan_skipped += x.size - kept
+            self.stats.bad_values[stream] += int(np.count_nonzero(~finite & np.isfinite(t)))
+            t, x = t[finite], x[finite]
+        accepted = self._add_screened(stream, t, x)
+        if emit:
+            self._emit()
+        return accepted
 
     def _add_screened(self, stream: str, t: np.ndarray, x: np.ndarray) -> int:
         """Clock-jump handling: samples more than the reset threshold older than the stream's
@@ -217,6 +230,8 @@ class StreamAligner:
             return 0
         if s.jumped and t[0] > s.last:
             self._drop_jumped(s)
+        if not s.jumped and t[0] > s.last and (t.size == 1 or np.diff(t).min() > 0):  # in order: all new
+            return self._append(stream, t, x)
         newest = np.maximum.accumulate(np.concatenate([[s.last], t]))[:-1]
         back = np.flatnonzero(t < newest - self._reset_threshold())
         if back.size == 0 and not s.jumped:
@@ -230,6 +245,7 @@ class StreamAligner:
             self.stats.late += s.jumped.pop(0)[0].size
         other = self._streams[STREAMS[1 - STREAMS.index(stream)]]
         if other.jumped:  # both clocks went back (sim time reset, bag loop): restart on the new timeline
+            self._emit()  # what came before the jump, on the old one
             self._reset_clock()
             return accepted + self._accept_jumped()
         return accepted
@@ -268,18 +284,20 @@ class StreamAligner:
         return accepted
 
     def _accept(self, stream: str, t: np.ndarray, x: np.ndarray, newest: np.ndarray) -> int:
-        s = self._streams[stream]
         accept = t > newest
         self.stats.duplicate += int(np.count_nonzero(t == newest))
         self.stats.late += int(np.count_nonzero(t < newest))
-        t, x = t[accept], x[accept]
+        return self._append(stream, t[accept], x[accept])
+
+    def _append(self, stream: str, t: np.ndarray, x: np.ndarray) -> int:
+        """Hold accepted samples (increasing stamps, all newer than the stream's newest) for the grid."""
+        s = self._streams[stream]
         if t.size == 0:
             return 0
         self.stats.accepted[stream] += t.size
         self.stats.first_stamp.setdefault(stream, float(t[0]))
         self.stats.last_stamp[stream] = float(t[-1])
         self.stats.overflow += s.append(t, x, cap=self.pending_cap)
-        self._emit()
         return int(t.size)
 
     def _infer_rate(self) -> None:
