@@ -193,13 +193,13 @@ def test_the_solver_process_is_started_only_when_the_solves_outweigh_its_start(c
 
     started = []
     real = replay_cli.SolverProcess
-    monkeypatch.setattr(replay_cli, "SolverProcess", lambda: started.append(1) or real())
+    monkeypatch.setattr(replay_cli, "SolverProcess", lambda *args: started.append(args) or real(*args))
     argv = ("replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "2", "--json")
     alone = run_json(capsys, *argv)
     assert not started and alone["solves"] > 20
     monkeypatch.setattr(replay_cli, "OVERLAP_SECONDS", 0.0)
     beside = run_json(capsys, *argv)
-    assert started == [1]
+    assert started == [("fork",)]  # no thread, no middleware in replay: forked, loaded
     for doc in (alone, beside):
         doc.pop("wall_s")
     assert beside == alone

@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
     stop = SignalStop()
     try:
         if args.rate is None and expected_solve_seconds(config, solve_rate * bag_duration(args.bag)) >= OVERLAP_SECONDS:
-            solver = SolverProcess()
+            solver = SolverProcess("fork")  # no thread and no middleware yet: the worker starts loaded
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
 
