@@ -53,3 +53,42 @@ def test_hankel_size_and_rank_errors_name_the_problem(g1):
         eigensystem_realization(g1.markov_parameters(10), order=2, rows=8, columns=8)
     with pytest.raises(IdentificationError, match="rank"):
         eigensystem_realization(np.zeros(20), order=1)
+
+
+def test_transfer_function_and_roots_as_numpy_computes_them():
+    """The direct LAPACK eigenvalues, the characteristic polynomial and the poles/zeros of a
+    ``LinearModel`` are np.linalg.eigvals, np.poly and the sorted np.roots of the padded
+    polynomials (trailing zeros: roots at the origin, cancelled in pairs)."""
+    from hammer_ros.identification.linear import characteristic_polynomial, eigenvalues
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 5, 8):
+        for _ in range(20):
+            a = rng.normal(size=(n, n))
+            np.testing.assert_allclose(eigenvalues(a), np.linalg.eigvals(a), rtol=1e-13, atol=1e-13)
+            assert np.iscomplexobj(eigenvalues(a)) == np.iscomplexobj(np.linalg.eigvals(a))
+            np.testing.assert_allclose(characteristic_polynomial(a), np.poly(a), rtol=1e-12, atol=1e-12)
+    with pytest.raises(np.linalg.LinAlgError):
+        eigenvalues(np.array([[np.nan, 0.0], [0.0, 1.0]]))
+
+    def reference(model):  # np.roots of the equal-length polynomials, common roots at 0 cancelled, sorted
+        length = max(model.a.size, model.b.size)
+        z = list(np.roots(np.pad(model.b, (0, length - model.b.size))).astype(complex)) if np.any(model.b) else []
+        p = list(np.roots(np.pad(model.a, (0, length - model.a.size))).astype(complex))
+        while 0j in z and 0j in p:
+            z.remove(0j)
+            p.remove(0j)
+        out = []
+        for r in (np.array(z, dtype=complex), np.array(p, dtype=complex)):
+            r = np.where(np.abs(r.imag) < 1e-12, r.real + 0j, r)
+            out.append(r[np.lexsort((r.imag, r.real))])
+        return out
+
+    for b, a in (([0.0, 1.0, -0.5], [1.0, -1.5, 0.7]), ([0.0, 0.0, 2.0], [1.0, 0.0, 0.0]),
+                 ([1.0, 0.0], [1.0, -0.9, 0.2, 0.0]), ([0.0], [1.0, 0.5]), ([0.0, 1.0, -2.0, 1.0], [1.0, -1.5, 0.56]),
+                 (rng.normal(size=4), [1.0, *rng.normal(size=5)])):
+        model = LinearModel(np.array(b), np.array(a))
+        zeros, poles = reference(model)
+        np.testing.assert_allclose(model.zeros, zeros, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(model.poles, poles, rtol=1e-13, atol=1e-13)
+        assert model.poles is not model.poles  # copies: a caller cannot change the cached roots

@@ -323,3 +323,28 @@ def test_batch_messages_put_the_last_sample_at_the_stamp():
     assert inferred.add_message("response", 1.1, np.arange(10.0)) == 10
     # spacing from the previous message while fs is unknown
     np.testing.assert_allclose(inferred.message_stamps("response", 1.2, 4), [1.125, 1.15, 1.175, 1.2])
+
+
+def test_solve_outcome_is_the_document_of_its_result(record):
+    """An ok solve carries ``result.to_json`` on its window (poles, zeros, F, fit) and the Markov
+    parameters of that document; the next solve compares against it as the published model."""
+    from hammer_ros.identification.result import fit_percent
+    from hammer_ros.streaming.engine import solve_snapshot
+
+    t, v, y = record
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=4000, tau_max=66))
+    engine.add_excitation(t[:6000], v[:6000])
+    engine.add_response(t[:6000], y[:6000])
+    snapshot = engine.snapshot()
+    outcome = solve_snapshot(snapshot)
+    assert outcome.ok and outcome.status == "ok"
+    assert outcome.doc == outcome.result.to_json(snapshot.v, snapshot.y)
+    assert outcome.markov == tuple(outcome.doc["markov"]) and len(outcome.markov) == 31
+    assert outcome.doc["poles"] == [[p.real, p.imag] for p in outcome.result.linear.poles]
+    assert outcome.doc["fit_percent"] == fit_percent(snapshot.y, outcome.result.simulate(snapshot.v))
+    assert outcome.input_std == float(np.std(snapshot.v))
+    engine.record(outcome)
+    engine.add_excitation(t[6000:], v[6000:])
+    engine.add_response(t[6000:], y[6000:])
+    again = solve_snapshot(engine.snapshot())
+    assert again.ok and again.doc["fit_percent"] > 90.0

@@ -31,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from ..errors import IdentificationError
 from .correlation import auto_correlation, cross_correlation
@@ -181,11 +182,26 @@ def gain_correction(
     target = y[first:].copy()  # A_hat(q^-1) y = lfilter(denominator, [1], y)[first:], its n lags added
     for lag, alpha in zip(output_lags, step1.denominator, strict=True):
         target += alpha * y[first - lag : first - lag + rows]
-    regressors = np.empty((rows, basis.shape[1]))
+    regressors = np.empty((rows, basis.shape[1]), order="F")
     regressors[:, 0] = basis[0, 0] * numerator.sum()  # the constant column's FIR
-    for j in range(1, basis.shape[1]):
-        regressors[:, j] = np.convolve(basis[:, j], numerator, "valid")
+    _fir_valid(basis[:, 1:], numerator, regressors[:, 1:])
     return least_squares_qr(regressors, target)
+
+
+def _fir_valid(x: np.ndarray, taps: np.ndarray, out: np.ndarray) -> None:
+    """out[:, j] = np.convolve(x[:, j], taps, "valid") for every column of x (N x q) by matmuls:
+    output k is the window x(k .. k + m - 1) times the reversed m taps. With k = i m + r, the
+    windows of one phase r (i = 0, 1, ...) do not overlap, so over the whole blocks of m outputs
+    each (column, phase) is one BLAS matrix-vector product on a strided view of the column; the
+    last rows mod m outputs are one more (small) product."""
+    x = np.asfortranarray(x)
+    m, (n, q) = taps.size, x.shape
+    blocks, step, reversed_taps = (n - m + 1) // m, x.itemsize, taps[::-1].copy()
+    windows = as_strided(x, (q, m, blocks, m), (x.strides[1], step, m * step, step))  # [j, r, i, :]
+    out[: blocks * m].T.reshape(q, blocks, m)[...] = (windows @ reversed_taps).transpose(0, 2, 1)
+    tail = x[blocks * m :]
+    out[blocks * m :] = (as_strided(tail, (q, n - m + 1 - blocks * m, m), (x.strides[1], step, step))
+                         @ reversed_taps).T
 
 
 def correlation_least_squares(
@@ -233,7 +249,9 @@ def correlation_least_squares_steps(
     if partition is not None:
         return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float))
     gamma = gain_correction(v, y, step1, order, delay, poly)
-    slope = float(np.polynomial.polynomial.polyval(np.mean(v), np.polynomial.polynomial.polyder(gamma)))
+    mean, slope = float(np.mean(v)), 0.0
+    for power in range(gamma.size - 1, 0, -1):  # F'(mean v) = sum_l l gamma_l mean^(l-1) by Horner's rule
+        slope = slope * mean + power * float(gamma[power])
     if abs(slope) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
         raise IdentificationError("CLS step 2: F has zero slope at the input mean; the linear block's gain is "
                                   "not identifiable")

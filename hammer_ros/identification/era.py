@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import IdentificationError
-from .linear import LinearModel
+from .linear import LinearModel, characteristic_polynomial
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,9 +62,9 @@ class StateSpaceRealization:
         ``delay`` numerator coefficients (h_0 .. h_(d-1) = 0 for a known relative degree d)
         are set to exact zeros: the realisation reproduces them only up to rounding, and a
         1e-17 leading coefficient would show up as a spurious zero near infinity."""
-        den = np.poly(self.A)
+        den = characteristic_polynomial(self.A)
         # SISO: C (zI - A)^-1 B = [det(zI - A + BC) - det(zI - A)] / det(zI - A) (matrix determinant lemma)
-        num = np.poly(self.A - self.B @ self.C) - den + self.D * den
+        num = characteristic_polynomial(self.A - self.B @ self.C) - den + self.D * den
         num[:delay] = 0.0
         return LinearModel(num, den)
 

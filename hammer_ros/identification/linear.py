@@ -15,6 +15,7 @@ from functools import cached_property
 
 import numpy as np
 from scipy import signal
+from scipy.linalg import lapack
 from scipy.optimize import linear_sum_assignment
 
 
@@ -26,8 +27,8 @@ class LinearModel:
     a: np.ndarray
 
     def __post_init__(self) -> None:
-        b = np.atleast_1d(np.asarray(self.b, dtype=float))
-        a = np.atleast_1d(np.asarray(self.a, dtype=float))
+        b = np.array(self.b, dtype=float, ndmin=1, copy=None)
+        a = np.array(self.a, dtype=float, ndmin=1, copy=None)
         if a.size == 0 or a[0] == 0.0:
             raise ValueError("denominator must start with a non-zero coefficient")
         object.__setattr__(self, "b", b / a[0])
@@ -62,26 +63,24 @@ class LinearModel:
 
     @cached_property
     def _zpk(self) -> tuple[np.ndarray, np.ndarray]:
-        """(zeros, poles), computed once: the model is immutable."""
+        """(zeros, poles), sorted (``_sorted_roots``) and computed once: the model is immutable."""
         length = max(self.a.size, self.b.size)
-        b = np.pad(self.b, (0, length - self.b.size))
-        a = np.pad(self.a, (0, length - self.a.size))
-        # np.roots drops leading zeros (the relative degree); trailing zeros give roots at 0
-        z = list(np.roots(b).astype(complex)) if np.any(b) else []
-        p = list(np.roots(a).astype(complex))
+        # both polynomials in z of degree length - 1: the shorter one's missing powers are roots at 0
+        z = _polynomial_roots(self.b.tolist(), length) if self.b.any() else []
+        p = _polynomial_roots(self.a.tolist(), length)
         # cancel the common roots at the origin introduced by equal-length padding
         while 0j in z and 0j in p:
             z.remove(0j)
             p.remove(0j)
-        return np.array(z, dtype=complex), np.array(p, dtype=complex)
+        return _sorted_roots(z), _sorted_roots(p)
 
     @property
     def poles(self) -> np.ndarray:
-        return _sorted_roots(self._zpk[1])
+        return self._zpk[1].copy()
 
     @property
     def zeros(self) -> np.ndarray:
-        return _sorted_roots(self._zpk[0])
+        return self._zpk[0].copy()
 
     def simulate(self, v: np.ndarray) -> np.ndarray:
         """Free-run response to the input sequence ``v`` from zero initial conditions."""
@@ -97,13 +96,56 @@ class LinearModel:
         return LinearModel(self.b * factor, self.a)
 
     def is_stable(self) -> bool:
-        return bool(np.all(np.abs(self.poles) < 1.0))
+        return bool((np.abs(self._zpk[1]) < 1.0).all())
 
 
-def _sorted_roots(roots: np.ndarray) -> np.ndarray:
-    roots = np.asarray(roots, dtype=complex)
-    roots = np.where(np.abs(roots.imag) < 1e-12, roots.real + 0j, roots)
-    return roots[np.lexsort((roots.imag, roots.real))]
+def _polynomial_roots(coefficients: list[float], length: int) -> list[complex]:
+    """``np.roots`` of ``coefficients`` (not all zero) padded with zeros to ``length``: the eigenvalues
+    of the companion matrix of the coefficients from the first to the last non-zero one, then a root
+    at 0 per trailing zero (np.roots' matrix and LAPACK call, without its padding and argument
+    handling; a polynomial of an identified model has a handful of coefficients)."""
+    nonzero = [i for i, c in enumerate(coefficients) if c != 0.0]
+    first, last = nonzero[0], nonzero[-1]
+    roots = []
+    if last > first:
+        companion = np.eye(last - first, k=-1)
+        companion[0] = [-c / coefficients[first] for c in coefficients[first + 1 : last + 1]]
+        roots = eigenvalues(companion).tolist()
+    return roots + [0j] * (length - 1 - last)
+
+
+def characteristic_polynomial(matrix: np.ndarray) -> np.ndarray:
+    """det(zI - A) of a real matrix, ``np.poly(A)``: the same convolutions with z - lambda over the
+    eigenvalues in turn (complex when some eigenvalues are; they come in conjugate pairs, so the
+    result is real), without np.poly's argument handling and conjugate-pair check."""
+    roots = eigenvalues(matrix)
+    coefficients = np.ones(1, dtype=roots.dtype)
+    for root in roots:
+        coefficients = np.convolve(coefficients, np.array([1, -root], dtype=roots.dtype))
+    return coefficients.real.copy()
+
+
+def eigenvalues(matrix: np.ndarray) -> np.ndarray:
+    """``np.linalg.eigvals`` of a real square matrix (a real array when every eigenvalue is real): one
+    direct LAPACK dgeev call (eigenvalues only), without numpy's per-call overhead; a solve of the
+    streaming engine needs four (the ERA realisation's polynomials and the model's poles and zeros)."""
+    if not np.isfinite(matrix).all():
+        raise np.linalg.LinAlgError("Array must not contain infs or NaNs")
+    real, imaginary, _, _, info = lapack.dgeev(matrix, compute_vl=0, compute_vr=0)
+    if info != 0:
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
+    if not imaginary.any():
+        return real
+    values = real.astype(complex)
+    values.imag = imaginary
+    return values
+
+
+def _sorted_roots(roots: list[complex]) -> np.ndarray:
+    """The roots as a complex array ordered by real, then imaginary part, imaginary parts below 1e-12
+    set to 0 (real + 0.0 turns a -0.0 into 0.0, as numpy's real + 0j)."""
+    snapped = [complex(r.real + 0.0, 0.0) if abs(r.imag) < 1e-12 else complex(r) for r in roots]
+    return np.array(sorted(snapped, key=lambda r: (r.real, r.imag)), dtype=complex)
 
 
 def root_rss_error(true_roots, estimated_roots) -> float:

@@ -34,7 +34,7 @@ def lagged_columns(x: np.ndarray, lags, rows: np.ndarray) -> np.ndarray:
     """
     x = np.asarray(x, dtype=float)
     x2 = x[:, None] if x.ndim == 1 else x
-    lags = np.asarray(list(lags), dtype=int)
+    lags = np.asarray(lags if isinstance(lags, np.ndarray) else list(lags), dtype=int)
     if lags.size == 0:
         return np.zeros((rows.size, 0))
     block = x2[rows[:, None] - lags[None, :]]  # (rows, lags, p)
@@ -122,12 +122,12 @@ def least_squares_qr(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
     phi, target = np.asarray(phi, dtype=float), np.asarray(target, dtype=float)
     rows, n = phi.shape
     targets = target.reshape(rows, -1)
-    if rows <= n or n == 0 or not (np.all(np.isfinite(phi)) and np.all(np.isfinite(targets))):
+    if rows <= n or n == 0 or not (np.isfinite(phi).all() and np.isfinite(targets).all()):
         return solve_least_squares(phi, target)
     augmented = np.empty((rows, n + targets.shape[1]), order="F")
     augmented[:, :n], augmented[:, n:] = phi, targets
     qr, _, _, info = lapack.dgeqrf(augmented, overwrite_a=True)
-    diagonal = np.abs(np.diagonal(qr)[:n])
+    diagonal = np.abs(qr.diagonal()[:n])
     if info != 0 or not diagonal.min() > QR_RANK_TOLERANCE * diagonal.max():
         return solve_least_squares(phi, target)
     theta, info = lapack.dtrtrs(qr[:n, :n], qr[:n, n:])
@@ -163,10 +163,10 @@ def fit_regression(
 
 def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.ndarray:
     """Columns v, v^2, ..., v^degree (f_l = v^l, paper 000 Remark 3), with a leading column of
-    ones when ``constant``."""
+    ones when ``constant``; column-major (each column contiguous, as CLS step 2 filters them)."""
     v = np.asarray(v, dtype=float)
     first = 1 if constant else 0
-    basis = np.empty((v.size, first + degree))
+    basis = np.empty((v.size, first + degree), order="F")
     if constant:
         basis[:, 0] = 1.0
     if degree:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -14,16 +15,22 @@ from .linear import LinearModel
 def rms_error(y: np.ndarray, y_sim: np.ndarray) -> float:
     """rms = sqrt(mean((y - y_sim)^2))."""
     y, y_sim = np.asarray(y, float), np.asarray(y_sim, float)
-    return float(np.sqrt(np.mean((y - y_sim) ** 2)))
+    return math.sqrt(((y - y_sim) ** 2).mean())
 
 
 def fit_percent(y: np.ndarray, y_sim: np.ndarray) -> float:
     """fit = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (the NRMSE fit of MATLAB's compare)."""
     y, y_sim = np.asarray(y, float), np.asarray(y_sim, float)
-    spread = np.linalg.norm(y - y.mean())
+    spread = _norm(y - y.mean())
     if spread == 0.0:
         return float("nan")
-    return float(100.0 * (1.0 - np.linalg.norm(y - y_sim) / spread))
+    return float(100.0 * (1.0 - _norm(y - y_sim) / spread))
+
+
+def _norm(x: np.ndarray) -> float:
+    """||x||_2 = sqrt(x . x), as np.linalg.norm computes it for a real array (without its dispatch)."""
+    x = x.ravel(order="K")
+    return math.sqrt(x @ x)
 
 
 def _roots_json(roots: np.ndarray) -> list[list[float]]:
@@ -90,7 +97,7 @@ class IdentificationResult:
 
 
 def _finite_or_none(x: float) -> float | None:
-    return float(x) if np.isfinite(x) else None
+    return float(x) if math.isfinite(x) else None
 
 
 def strict_json(value: Any) -> Any:

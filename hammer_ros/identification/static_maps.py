@@ -21,7 +21,14 @@ class PolynomialMap:
         object.__setattr__(self, "coefficients", np.asarray(self.coefficients, dtype=float))
 
     def __call__(self, v: np.ndarray) -> np.ndarray:
-        return np.polynomial.polynomial.polyval(np.asarray(v, dtype=float), self.coefficients)
+        """F(v) by Horner's rule, c_p v + c_(p-1), times v, plus c_(p-2), ..., in place (the same
+        operations as np.polynomial.polynomial.polyval without its temporaries)."""
+        v = np.asarray(v, dtype=float)
+        out = np.full(v.shape, self.coefficients[-1])
+        for coefficient in self.coefficients[-2::-1]:
+            out *= v
+            out += coefficient
+        return out[()]
 
     def to_json(self, sample_range: tuple[float, float] | None = None) -> dict:
         lo, hi = sample_range or (-1.0, 1.0)

@@ -254,8 +254,8 @@ def window_problem(snapshot: EngineSnapshot) -> tuple[str, str, float, float]:
         return "filling", f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)", math.nan, math.nan
     with np.errstate(all="ignore"):
         cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
-    spread = float(np.std(v))
-    if spread <= 1e-12 * max(1.0, float(np.max(np.abs(v)))) or not cond <= PE_CONDITION_LIMIT:
+    spread = float(v.std())
+    if spread <= 1e-12 * max(1.0, float(np.abs(v).max())) or not cond <= PE_CONDITION_LIMIT:
         return ("not_exciting", f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
                 cond, spread)
     reference = snapshot.reference_std
@@ -276,9 +276,9 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     started = time.perf_counter()
     cfg, v, y = snapshot.config, snapshot.v, snapshot.y
 
-    def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok") -> SolveOutcome:
+    def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok", markov=()) -> SolveOutcome:
         return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp,
-                            status, spread)
+                            status, spread, markov)
 
     status, reason, cond, spread = window_problem(snapshot)
     if status:
@@ -303,7 +303,7 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
         return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", cond=cond,
                        status="exception")
-    finite = np.all(np.isfinite(result.linear.a)) and np.all(np.isfinite(result.linear.b))
+    finite = np.isfinite(result.linear.a).all() and np.isfinite(result.linear.b).all()
     if not finite:
         return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond, status="failed")
     if kept:
@@ -312,7 +312,7 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     markov = doc.get("markov")
     if markov is None:
         markov = result.linear.markov_parameters(2 * result.linear.order + 1).tolist()
-    return replace(outcome(True, "", result, doc, cond), markov=tuple(float(h) for h in markov))
+    return outcome(True, "", result, doc, cond, markov=tuple(map(float, markov)))
 
 
 
