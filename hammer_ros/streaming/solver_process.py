@@ -95,7 +95,8 @@ class SolverProcess:
         at once while the socket's buffer holds it, else when the worker has read enough."""
         kept = self._kept(snapshot)
         try:
-            self._connection.send((kept, replace(snapshot, published=None, v=snapshot.v[kept:], y=snapshot.y[kept:])))
+            self._connection.send((kept, replace(snapshot, published=None, stats=None,  # the counters stay here
+                                                 v=snapshot.v[kept:], y=snapshot.y[kept:])))
         except OSError as error:
             raise RuntimeError(self._exited()) from error
         self._last = snapshot
