@@ -199,7 +199,7 @@ def test_the_solver_process_is_started_only_when_the_solves_outweigh_its_start(c
     assert not started and alone["solves"] > 20
     monkeypatch.setattr(replay_cli, "OVERLAP_SECONDS", 0.0)
     beside = run_json(capsys, *argv)
-    assert started == [("fork",)]  # no thread, no middleware in replay: forked, loaded
+    assert started == [("fork", 8)]  # no thread, no middleware in replay: forked, loaded; 8 snapshots a transfer
     for doc in (alone, beside):
         doc.pop("wall_s")
     assert beside == alone

@@ -38,7 +38,7 @@ from ..io.bags import (
     load_msg_config,
     stream_specs,
 )
-from ..io.replay import NODE_NAME, check_replay_input, replay_bag
+from ..io.replay import NODE_NAME, SOLVE_BATCH, check_replay_input, replay_bag
 from ..streaming.config import CLS_STRUCTURES, EngineConfig
 from ..streaming.solver_process import SolverProcess
 from .common import check_option_conflicts, format_model
@@ -46,12 +46,13 @@ from .common import check_option_conflicts, format_model
 DEFAULT_SOLVE_RATE = 2.0
 # The periodic solves run in a SolverProcess beside the reading when they are expected to take at least
 # OVERLAP_SECONDS in process: solves x the typical solve (2-core bench machine, W = 4000: CLS on the window's
-# correlation sums 1.5 ms; the methods on the raw window 7 ms, growing with W). Below that the worker's start
-# (~1.1 s of wall time) and its share of the second core cost more than it saves: measured side by side,
-# 39 solves 0.7 s in process against 1.8 s with the worker, 399 solves 1.3 against 2.9 s, 199 solves on a
-# 100 000-message bag 4.9-5.5 against 5.7 s.
-OVERLAP_SECONDS = 3.0
-CLS_SOLVE_SECONDS, RAW_WINDOW_SOLVE_SECONDS = 0.0015, 0.007
+# correlation sums 0.7 ms with the engine's flush and snapshot; the methods on the raw window 7 ms, growing
+# with W). The worker is forked (~6 ms) and each solve's transfer costs ~0.1 ms on either side, so below that
+# it does not pay: measured side by side, 39 solves 0.38-0.46 s in process against 0.41-0.47 s with the
+# worker, 199 solves on a 100 000-message Float64 bag 1.72-1.96 against 1.61-1.79 s, 399 solves of
+# 100-sample batches 0.31-0.33 against 0.24-0.26 s.
+OVERLAP_SECONDS = 0.1
+CLS_SOLVE_SECONDS, RAW_WINDOW_SOLVE_SECONDS = 0.0007, 0.007
 
 
 def expected_solve_seconds(config: EngineConfig, solves: float) -> float:
@@ -159,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     stop = SignalStop()
     try:
         if args.rate is None and expected_solve_seconds(config, solve_rate * bag_duration(args.bag)) >= OVERLAP_SECONDS:
-            solver = SolverProcess("fork")  # no thread and no middleware yet: the worker starts loaded
+            solver = SolverProcess("fork", SOLVE_BATCH)  # no thread, no middleware yet: the worker starts loaded
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
 

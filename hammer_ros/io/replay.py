@@ -46,7 +46,8 @@ from .bags import (
 )
 
 NODE_NAME = "hammer_ros"
-MAX_IN_FLIGHT = 64  # snapshots sent to a SolverProcess and not yet collected (about 70 kB each at W = 4000)
+MAX_IN_FLIGHT = 64  # snapshots sent to a SolverProcess and not yet collected
+SOLVE_BATCH = 8  # snapshots per transfer to a SolverProcess (one wake-up of the worker for several solves)
 
 
 class Publisher(Protocol):
