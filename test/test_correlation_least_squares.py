@@ -339,3 +339,82 @@ def test_step_2_filters_every_basis_column_as_np_convolve():
     powers = polynomial_basis(rng.normal(size=50), 3, constant=True)
     assert powers.flags.f_contiguous
     np.testing.assert_array_equal(powers, np.vander(powers[:, 1], 4, increasing=True))
+
+
+def test_regression_lags_are_cached_read_only_and_gathered_as_fancy_indexing():
+    """``markov_lags`` is computed once per (order, delay, mu) and cannot be changed by a caller;
+    its largest lag is n + mu - 1 (``largest_lag``); ``lagged_columns`` gathers exactly
+    x[rows - lag] for a 1-D input and a basis matrix (lag-major columns)."""
+    from hammer_ros.identification.regression import lagged_columns, largest_lag, markov_lags
+
+    for order in range(1, 6):
+        for delay in range(order + 1):
+            for mu in (1, 2, 5, 30):
+                output_lags, input_lags = markov_lags(order, delay, mu)
+                assert markov_lags(order, delay, mu)[0] is output_lags
+                assert not output_lags.flags.writeable and not input_lags.flags.writeable
+                assert largest_lag(order, mu) == max(output_lags.max(), input_lags.max())
+    with pytest.raises(ValueError):
+        markov_lags(2, 3, 1)
+    rng = np.random.default_rng(6)
+    rows, lags = np.arange(7, 40), np.array([0, 3, 7, 1])
+    x = rng.normal(size=40)
+    np.testing.assert_array_equal(lagged_columns(x, lags, rows), x[rows[:, None] - lags[None, :]])
+    basis = rng.normal(size=(40, 3))
+    expected = np.column_stack([basis[rows - lag, j] for lag in lags for j in range(3)])
+    np.testing.assert_array_equal(lagged_columns(basis, lags, rows), expected)
+    in_range = np.column_stack([basis[rows - lag, j] for lag in (2, 3) for j in range(3)])
+    np.testing.assert_array_equal(lagged_columns(basis, range(2, 4), rows), in_range)
+    assert lagged_columns(x, [], rows).shape == (33, 0)
+
+
+def test_least_squares_qr_gives_nan_for_non_finite_data():
+    """A NaN or inf anywhere in phi or the target (checked once, on [phi | target]) gives NaN
+    coefficients, and no warning."""
+    from hammer_ros.identification.regression import least_squares_qr
+
+    rng = np.random.default_rng(7)
+    phi, target = rng.normal(size=(50, 3)), rng.normal(size=(50, 2))
+    for bad in (np.nan, np.inf, -np.inf):
+        for where in ("phi", "target"):
+            p, t = phi.copy(), target.copy()
+            if where == "phi":
+                p[17, 1] = bad
+            else:
+                t[17, 1] = bad
+            theta = least_squares_qr(p, t)
+            assert theta.shape == (3, 2) and np.all(np.isnan(theta))
+
+
+def test_fit_and_rms_from_one_residual():
+    """``fit_and_rms`` is (``fit_percent``, ``rms_error``) of the same simulation; NaN for no data
+    and a NaN fit for a constant output."""
+    from hammer_ros.identification.result import fit_and_rms, fit_percent, rms_error
+
+    rng = np.random.default_rng(8)
+    y, y_sim = rng.normal(size=300), rng.normal(size=300)
+    fit, rms = fit_and_rms(y, y_sim)
+    assert fit == fit_percent(y, y_sim)
+    assert fit == pytest.approx(100.0 * (1.0 - np.linalg.norm(y - y_sim) / np.linalg.norm(y - y.mean())), rel=1e-14)
+    assert rms == pytest.approx(rms_error(y, y_sim), rel=1e-14)
+    assert all(np.isnan(fit_and_rms(np.array([]), np.array([]))))
+    fit, rms = fit_and_rms(np.ones(5), np.zeros(5))
+    assert np.isnan(fit) and rms == 1.0
+
+
+def test_polynomial_map_is_horner_as_polyval():
+    """F(v) equals np.polynomial.polynomial.polyval bit for bit (the same Horner steps) for arrays,
+    scalars and a constant map, with numpy's shapes and scalar types."""
+    from hammer_ros.identification.static_maps import PolynomialMap
+
+    rng = np.random.default_rng(9)
+    v = rng.normal(size=(20, 3))
+    for coefficients in ([0.7], [0.1, -2.0], [0.01, 1.0, 0.2, -0.3], rng.normal(size=6)):
+        f = PolynomialMap(coefficients)
+        for x in (v, v[:, 0], 0.3, np.float64(-1.2), np.array(2.0), [0.5, 1.5]):
+            expected = np.polynomial.polynomial.polyval(np.asarray(x, dtype=float), np.asarray(coefficients, float))
+            if len(coefficients) == 1:
+                expected = np.full(np.shape(x), coefficients[0])[()]
+            np.testing.assert_array_equal(f(x), expected)
+            assert np.shape(f(x)) == np.shape(x)
+    assert PolynomialMap([1.0, 2.0]).to_json((0.0, 1.0))["points"][-1] == [1.0, 3.0]

@@ -92,3 +92,35 @@ def test_transfer_function_and_roots_as_numpy_computes_them():
         np.testing.assert_allclose(model.zeros, zeros, rtol=1e-13, atol=1e-13)
         np.testing.assert_allclose(model.poles, poles, rtol=1e-13, atol=1e-13)
         assert model.poles is not model.poles  # copies: a caller cannot change the cached roots
+
+
+def test_direct_lapack_calls_as_numpy_computes_them():
+    """ERA's SVD and the engine's symmetric eigenvalues are np.linalg.svd and np.linalg.eigvalsh (the
+    same LAPACK routines without numpy's wrappers); the cached Hankel indices cannot be changed."""
+    from hammer_ros.identification.era import _hankel_indices, _svd
+    from hammer_ros.identification.linear import symmetric_eigenvalues
+
+    rng = np.random.default_rng(10)
+    for shape in ((15, 15), (16, 15), (4, 9), (1, 1)):
+        m = rng.normal(size=shape)
+        for got, expected in zip(_svd(m), np.linalg.svd(m), strict=True):
+            np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-13)
+    for n in (1, 2, 7, 12):
+        m = rng.normal(size=(n, n))
+        m = m + m.T
+        np.testing.assert_allclose(symmetric_eigenvalues(m), np.linalg.eigvalsh(m), rtol=1e-12, atol=1e-13)
+        lower_only = np.tril(m) + np.triu(np.full((n, n), 1e3), 1)  # eigvalsh reads the lower triangle
+        np.testing.assert_allclose(symmetric_eigenvalues(lower_only), np.linalg.eigvalsh(lower_only), rtol=1e-12,
+                                   atol=1e-12)
+    first, second = _hankel_indices(3, 2)
+    np.testing.assert_array_equal(first, [[1, 2], [2, 3], [3, 4]])
+    np.testing.assert_array_equal(second, first + 1)
+    assert _hankel_indices(3, 2)[0] is first and not first.flags.writeable and not second.flags.writeable
+
+
+def test_stability_is_every_pole_inside_the_unit_circle():
+    """``is_stable``: a Python bool, True when every pole has modulus below 1 (also without poles)."""
+    assert LinearModel.from_zeros_poles([0.5], [0.9, 0.2 + 0.3j, 0.2 - 0.3j]).is_stable() is True
+    assert LinearModel.from_zeros_poles([], [1.0, 0.2]).is_stable() is False
+    assert LinearModel.from_zeros_poles([], [-0.3 + 0.99j, -0.3 - 0.99j]).is_stable() is False
+    assert LinearModel(np.array([1.0]), np.array([1.0])).is_stable() is True  # no poles

@@ -348,3 +348,23 @@ def test_solve_outcome_is_the_document_of_its_result(record):
     engine.add_response(t[6000:], y[6000:])
     again = solve_snapshot(engine.snapshot())
     assert again.ok and again.doc["fit_percent"] > 90.0
+
+
+def test_excitation_condition_number_is_that_of_the_toeplitz_matrix(record):
+    """cond(R_p) of the symmetrised autocorrelation's p x p Toeplitz matrix, p = 2n + 1, as numpy's
+    eigvalsh gives it; inf for a rank-deficient (constant) input."""
+    import scipy.linalg
+
+    from hammer_ros.streaming.engine import excitation_condition_number
+
+    _, v, _ = record
+    tau_max = 20
+    phi = cross_correlation(v[:3000], v[:3000], tau_max)
+    for order in (1, 3, 5):
+        p = 2 * order + 1
+        symmetrised = 0.5 * (phi[tau_max : tau_max + p] + phi[tau_max - p + 1 : tau_max + 1][::-1])
+        eig = np.linalg.eigvalsh(scipy.linalg.toeplitz(symmetrised))
+        assert excitation_condition_number(phi, tau_max, order) == pytest.approx(eig[-1] / eig[0], rel=1e-9)
+    constant = cross_correlation(np.ones(200), np.ones(200), tau_max)
+    with np.errstate(all="ignore"):
+        assert excitation_condition_number(constant, tau_max, 3) > 1e12

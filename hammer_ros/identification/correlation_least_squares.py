@@ -38,7 +38,7 @@ from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .linear import LinearModel
 from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
-from .regression import fit_regression, least_squares_qr, markov_lags, polynomial_basis
+from .regression import fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap
@@ -171,7 +171,7 @@ def gain_correction(
         output_lags, input_lags = markov_lags(order, delay, step1.mu)
     except ValueError as exc:
         raise IdentificationError(f"CLS step 2: {exc}") from None
-    first = int(max(output_lags.max(), input_lags.max()))
+    first = largest_lag(order, step1.mu)
     if basis is None:
         basis = polynomial_basis(v, poly, constant=True)
     if v.size <= first + basis.shape[1]:
@@ -180,7 +180,7 @@ def gain_correction(
     numerator[input_lags] = step1.numerator
     rows = v.size - first
     target = y[first:].copy()  # A_hat(q^-1) y = lfilter(denominator, [1], y)[first:], its n lags added
-    for lag, alpha in zip(output_lags, step1.denominator, strict=True):
+    for lag, alpha in zip(output_lags.tolist(), step1.denominator.tolist(), strict=True):
         target += alpha * y[first - lag : first - lag + rows]
     regressors = np.empty((rows, basis.shape[1]), order="F")
     regressors[:, 0] = basis[0, 0] * numerator.sum()  # the constant column's FIR
@@ -249,10 +249,10 @@ def correlation_least_squares_steps(
     if partition is not None:
         return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float))
     gamma = gain_correction(v, y, step1, order, delay, poly)
-    mean, slope = float(np.mean(v)), 0.0
+    mean, slope, coefficients = float(v.sum() / v.size), 0.0, gamma.tolist()  # v.mean()
     for power in range(gamma.size - 1, 0, -1):  # F'(mean v) = sum_l l gamma_l mean^(l-1) by Horner's rule
-        slope = slope * mean + power * float(gamma[power])
-    if abs(slope) < 1e-12 * max(1.0, float(np.max(np.abs(gamma)))):
+        slope = slope * mean + power * coefficients[power]
+    if abs(slope) < 1e-12 * max(1.0, *map(abs, coefficients)):
         raise IdentificationError("CLS step 2: F has zero slope at the input mean; the linear block's gain is "
                                   "not identifiable")
     return HammersteinEstimate(step1.scaled(slope), PolynomialMap(gamma / slope))

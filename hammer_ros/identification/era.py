@@ -22,12 +22,16 @@ its Tables 1-6 (the noisy estimated tail is averaged over the most rows and colu
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import lapack
 
 from ..errors import IdentificationError
 from .linear import LinearModel, characteristic_polynomial
+
+_TINY = np.finfo(float).tiny
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,10 +98,10 @@ def eigensystem_realization(
             f"ERA: order {order} needs a Hankel matrix of at least {order} x {order} "
             f"(have {rows} x {columns}; estimate more Markov parameters, e.g. a larger --mu)"
         )
-    index = np.arange(rows)[:, None] + np.arange(columns)[None, :]
-    h0, h1 = h[1 + index], h[2 + index]
-    u, s, vt = np.linalg.svd(h0)
-    if s[order - 1] <= 1e-14 * max(s[0], np.finfo(float).tiny):
+    first, second = _hankel_indices(rows, columns)
+    h0, h1 = h[first], h[second]
+    u, s, vt = _svd(h0)
+    if s[order - 1] <= 1e-14 * max(s[0], _TINY):
         raise IdentificationError(
             f"ERA: the Markov parameters have rank {int(np.sum(s > 1e-14 * s[0]))} < order {order}"
         )
@@ -107,6 +111,25 @@ def eigensystem_realization(
     b = (root * vn[0])[:, None]
     c = (un[0] * root)[None, :]
     return StateSpaceRealization(a, b, c, float(h[0]), s)
+
+
+def _svd(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.linalg.svd(matrix)`` (full U and V^T) of a real matrix: the same LAPACK dgesdd call, without
+    numpy's per-call overhead."""
+    u, s, vt, info = lapack.dgesdd(matrix)
+    if info != 0:
+        raise np.linalg.LinAlgError("SVD did not converge")
+    return u, s, vt
+
+
+@functools.lru_cache(maxsize=16)
+def _hankel_indices(rows: int, columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """The indices 1 + i + j of H(0) and 2 + i + j of H(1) into [h_0, h_1, ...] (cached, read-only:
+    the streaming engine solves with one size)."""
+    index = np.arange(rows)[:, None] + np.arange(columns)[None, :]
+    first, second = 1 + index, 2 + index
+    first.flags.writeable = second.flags.writeable = False
+    return first, second
 
 
 def era_linear_model(markov: np.ndarray, order: int, delay: int = 0) -> LinearModel:

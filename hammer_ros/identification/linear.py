@@ -96,7 +96,7 @@ class LinearModel:
         return LinearModel(self.b * factor, self.a)
 
     def is_stable(self) -> bool:
-        return bool((np.abs(self._zpk[1]) < 1.0).all())
+        return all(abs(pole) < 1.0 for pole in self._zpk[1].tolist())
 
 
 def _polynomial_roots(coefficients: list[float], length: int) -> list[complex]:
@@ -115,14 +115,16 @@ def _polynomial_roots(coefficients: list[float], length: int) -> list[complex]:
 
 
 def characteristic_polynomial(matrix: np.ndarray) -> np.ndarray:
-    """det(zI - A) of a real matrix, ``np.poly(A)``: the same convolutions with z - lambda over the
-    eigenvalues in turn (complex when some eigenvalues are; they come in conjugate pairs, so the
-    result is real), without np.poly's argument handling and conjugate-pair check."""
-    roots = eigenvalues(matrix)
-    coefficients = np.ones(1, dtype=roots.dtype)
-    for root in roots:
-        coefficients = np.convolve(coefficients, np.array([1, -root], dtype=roots.dtype))
-    return coefficients.real.copy()
+    """det(zI - A) of a real matrix, ``np.poly(A)``: the product of the factors z - lambda over the
+    eigenvalues in turn, as np.poly's convolutions (complex when some eigenvalues are; they come in
+    conjugate pairs, so the result is real), on Python numbers (a realisation has a handful of
+    eigenvalues) and without np.poly's argument handling and conjugate-pair check."""
+    roots = eigenvalues(matrix).tolist()
+    coefficients = [1.0] + [0.0] * len(roots)  # of z^n, z^(n-1), ..., 1
+    for k, root in enumerate(roots, start=1):  # times (z - root): c_i -= root c_(i-1), from the top
+        for i in range(k, 0, -1):
+            coefficients[i] -= root * coefficients[i - 1]
+    return np.array(coefficients).real.copy()
 
 
 def eigenvalues(matrix: np.ndarray) -> np.ndarray:
@@ -138,6 +140,16 @@ def eigenvalues(matrix: np.ndarray) -> np.ndarray:
         return real
     values = real.astype(complex)
     values.imag = imaginary
+    return values
+
+
+def symmetric_eigenvalues(matrix: np.ndarray) -> np.ndarray:
+    """``np.linalg.eigvalsh`` of a real symmetric matrix (ascending; its lower triangle is used): the same
+    LAPACK dsyevd call, without numpy's per-call overhead (the streaming engine's excitation check
+    needs one per solve)."""
+    values, _, info = lapack.dsyevd(matrix, compute_v=0, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("Eigenvalues did not converge")
     return values
 
 

@@ -7,6 +7,7 @@ regression with the correlation functions as "input-output" data.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,7 +38,7 @@ def lagged_columns(x: np.ndarray, lags, rows: np.ndarray) -> np.ndarray:
     lags = np.asarray(lags if isinstance(lags, np.ndarray) else list(lags), dtype=int)
     if lags.size == 0:
         return np.zeros((rows.size, 0))
-    block = x2[rows[:, None] - lags[None, :]]  # (rows, lags, p)
+    block = np.take(x2, rows[:, None] - lags[None, :], axis=0)  # (rows, lags, p); x2[index], gathered faster
     return block.reshape(rows.size, -1)
 
 
@@ -62,20 +63,30 @@ class Regression:
         return theta[:n], theta[n:].reshape(self.input_lags.size, self.channels)
 
 
+@functools.lru_cache(maxsize=64)
 def markov_lags(order: int, delay: int, mu: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Output and input lags of the mu-Markov model, paper 000 eq. (3):
 
         y(k) = -sum_{j=1}^{n} alpha_j y(k-mu+1-j) + sum_{i=d}^{d+mu-1} h_i v(k-i)
                + sum_{i=d+1}^{n} beta_i v(k-mu+1-i),
 
-    mu = 1 gives the ARX model of eq. (1): output lags 1..n, input lags d..n.
+    mu = 1 gives the ARX model of eq. (1): output lags 1..n, input lags d..n. Both end at the
+    largest lag n + mu - 1 (``largest_lag``). Cached (read-only arrays): a streaming solve asks for
+    the same lags every time.
     """
     if order < 1 or delay < 0 or mu < 1 or delay > order:
         raise ValueError(f"need order >= 1, 0 <= delay <= order, mu >= 1 (got {order}, {delay}, {mu})")
     output_lags = np.arange(1, order + 1) + mu - 1
     markov = np.arange(delay, delay + mu)
     tail = np.arange(delay + 1, order + 1) + mu - 1
-    return output_lags, np.concatenate([markov, tail])
+    input_lags = np.concatenate([markov, tail])
+    output_lags.flags.writeable = input_lags.flags.writeable = False
+    return output_lags, input_lags
+
+
+def largest_lag(order: int, mu: int = 1) -> int:
+    """The largest lag of ``markov_lags`` (output and input alike): n + mu - 1, eq. (3)."""
+    return order + mu - 1
 
 
 def build_regression(
@@ -91,12 +102,12 @@ def build_regression(
     if v.shape[0] != y.shape[0]:
         raise ValueError(f"input and output lengths differ ({v.shape[0]} vs {y.shape[0]})")
     output_lags, input_lags = markov_lags(order, delay, mu)
-    first = int(max(output_lags.max(), input_lags.max()))
+    first = largest_lag(order, mu)
     start = first if start is None else max(start, first)
     rows = np.arange(start, y.shape[0])
     if rows.size == 0:
         raise ValueError(f"too few samples ({y.shape[0]}) for lags up to {first}")
-    phi = np.hstack([-lagged_columns(y, output_lags, rows), lagged_columns(v, input_lags, rows)])
+    phi = np.concatenate([-lagged_columns(y, output_lags, rows), lagged_columns(v, input_lags, rows)], axis=1)
     channels = 1 if v.ndim == 1 else v.shape[1]
     return Regression(phi, y[rows], rows, output_lags, input_lags, channels)
 
@@ -121,11 +132,13 @@ def least_squares_qr(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
     where the minimum-norm solution is the defined answer) go to ``solve_least_squares``."""
     phi, target = np.asarray(phi, dtype=float), np.asarray(target, dtype=float)
     rows, n = phi.shape
-    targets = target.reshape(rows, -1)
-    if rows <= n or n == 0 or not (np.isfinite(phi).all() and np.isfinite(targets).all()):
+    if rows <= n or n == 0:
         return solve_least_squares(phi, target)
+    targets = target.reshape(rows, -1)
     augmented = np.empty((rows, n + targets.shape[1]), order="F")
     augmented[:, :n], augmented[:, n:] = phi, targets
+    if not np.isfinite(augmented).all():
+        return solve_least_squares(phi, target)
     qr, _, _, info = lapack.dgeqrf(augmented, overwrite_a=True)
     diagonal = np.abs(qr.diagonal()[:n])
     if info != 0 or not diagonal.min() > QR_RANK_TOLERANCE * diagonal.max():
@@ -151,7 +164,7 @@ def fit_regression(
         reg = build_regression(y, v, order, delay, mu)
     except ValueError as exc:
         raise IdentificationError(f"--order/--delay/--mu: {exc}") from None
-    phi = np.hstack([reg.phi, np.ones((reg.rows.size, 1))]) if intercept else reg.phi
+    phi = np.concatenate([reg.phi, np.ones((reg.rows.size, 1))], axis=1) if intercept else reg.phi
     if reg.rows.size < phi.shape[1]:
         raise IdentificationError(
             f"{reg.rows.size} regression rows for {phi.shape[1]} parameters "

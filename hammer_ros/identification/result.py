@@ -20,11 +20,17 @@ def rms_error(y: np.ndarray, y_sim: np.ndarray) -> float:
 
 def fit_percent(y: np.ndarray, y_sim: np.ndarray) -> float:
     """fit = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (the NRMSE fit of MATLAB's compare)."""
+    return fit_and_rms(y, y_sim)[0]
+
+
+def fit_and_rms(y: np.ndarray, y_sim: np.ndarray) -> tuple[float, float]:
+    """(``fit_percent``, ``rms_error``) of one simulation from one residual: rms = ||y - y_sim|| / sqrt(N)."""
     y, y_sim = np.asarray(y, float), np.asarray(y_sim, float)
-    spread = _norm(y - y.mean())
-    if spread == 0.0:
-        return float("nan")
-    return float(100.0 * (1.0 - _norm(y - y_sim) / spread))
+    if y.size == 0:
+        return float("nan"), float("nan")
+    error, spread = _norm(y - y_sim), _norm(y - y.sum() / y.size)  # y.mean()
+    fit = float("nan") if spread == 0.0 else float(100.0 * (1.0 - error / spread))
+    return fit, error / math.sqrt(y.size)
 
 
 def _norm(x: np.ndarray) -> float:
@@ -34,7 +40,7 @@ def _norm(x: np.ndarray) -> float:
 
 
 def _roots_json(roots: np.ndarray) -> list[list[float]]:
-    return [[float(r.real), float(r.imag)] for r in np.asarray(roots, dtype=complex)]
+    return [[r.real, r.imag] for r in np.asarray(roots, dtype=complex).tolist()]
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,7 +86,8 @@ class IdentificationResult:
         doc["b"] = self.linear.b.tolist()
         if self.markov is not None:
             doc["markov"] = np.asarray(self.markov, dtype=float).tolist()
-        sample_range = None if v is None else (float(np.min(v)), float(np.max(v)))
+        v = None if v is None else np.asarray(v, dtype=float)
+        sample_range = None if v is None else (float(v.min()), float(v.max()))
         if self.nonlinearity is not None:
             doc["nonlinearity"] = self.nonlinearity.to_json(sample_range)
         if self.feedback_nonlinearity is not None:
@@ -88,9 +95,8 @@ class IdentificationResult:
                 None if y is None else (float(np.min(y)), float(np.max(y)))
             )
         if v is not None and y is not None:
-            y_sim = self.simulate(v)
-            doc["fit_percent"] = _finite_or_none(fit_percent(y, y_sim))
-            doc["rms"] = _finite_or_none(rms_error(y, y_sim))
+            fit, rms = fit_and_rms(y, self.simulate(v))
+            doc["fit_percent"], doc["rms"] = _finite_or_none(fit), _finite_or_none(rms)
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc

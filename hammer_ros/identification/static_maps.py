@@ -24,10 +24,14 @@ class PolynomialMap:
         """F(v) by Horner's rule, c_p v + c_(p-1), times v, plus c_(p-2), ..., in place (the same
         operations as np.polynomial.polynomial.polyval without its temporaries)."""
         v = np.asarray(v, dtype=float)
-        out = np.full(v.shape, self.coefficients[-1])
-        for coefficient in self.coefficients[-2::-1]:
-            out *= v
+        constant, *higher = self.coefficients.tolist()
+        if not higher:
+            return np.full(v.shape, constant)[()]
+        out = higher.pop() * v
+        for coefficient in reversed(higher):
             out += coefficient
+            out *= v
+        out += constant
         return out[()]
 
     def to_json(self, sample_range: tuple[float, float] | None = None) -> dict:

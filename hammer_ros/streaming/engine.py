@@ -56,6 +56,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ..errors import HammerRosError, UsageError
+from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
 from ..identification.result import IdentificationResult, fit_percent
 from .aligner import StreamAligner
@@ -236,7 +237,7 @@ def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) ->
     p = min(2 * order + 1, tau_max + 1)
     one_sided = 0.5 * (phi_vv[tau_max : tau_max + p] + phi_vv[tau_max::-1][:p])
     idx = np.arange(p)
-    eig = np.linalg.eigvalsh(one_sided[np.abs(idx[:, None] - idx[None, :])])
+    eig = symmetric_eigenvalues(one_sided[np.abs(idx[:, None] - idx[None, :])])
     if eig[-1] <= 0 or eig[0] <= eig[-1] * 1e-300:
         return float("inf")
     return float(eig[-1] / eig[0])
