@@ -14,7 +14,7 @@ on lives in the worker: the published model and the reference input std of the e
 ``epoch``, updated from each outcome exactly as ``StreamingEngine.record`` updates the engine's.
 A sequence of snapshots thus gives the outcomes of in-process ``solve_snapshot`` with the
 engine's own state; a new epoch (new engine, new settings) starts without a published model,
-as the engine does. Snapshots travel in batches (``batch`` per transfer: one pickle, one system
+as the engine does. Snapshots travel in batches (``batch`` per transfer: one serialisation, one system
 call and one wake-up of the worker for several solves; replay sends 8) and their outcomes come
 back the same way. The pipe's socket buffers (about 200 kB each way) are the queues: sending
 returns at once while the worker's side has room and waits for the worker otherwise (the
@@ -22,7 +22,7 @@ back-pressure of a worker that is behind). The owner never has more than MAX_SEN
 batches unanswered (it reads outcomes before sending more), so their answers fit the buffer and
 the worker never waits for the owner to read: neither side can block the other. ``solve`` (the
 node's use: one snapshot at a time) sends and waits for the outcome. No thread is involved: in
-the owner, a thread that pickles beside replay's reading loop took the interpreter lock from it
+the owner, a thread that serialises beside replay's reading loop took the interpreter lock from it
 at every numpy call that released it; in the worker, a thread that sends the answers made the
 pipeline stall (replay of the bench's 100-sample bag: 1.06 s without it, 1.75-1.88 s with it).
 
