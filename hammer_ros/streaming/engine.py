@@ -31,7 +31,7 @@ Pipeline, per batch of timestamped samples of either stream:
 
    for tau = -T..T: exactly ``correlation.cross_correlation`` on the window. A new sample
    completes the centre k = newest - T, whose O(T) products are formed once (vectorised per
-   chunk: one C correlation loop per row, or real FFTs from T = FFT_MIN_TAU_MAX) into a block
+   chunk: one C correlation loop per row, or real FFTs where cheaper: ``by_fft``) into a block
    of consecutive centres; a block leaves the sums whole once the window has passed it, and
    the part of the oldest block already outside is subtracted when the correlations are read.
    Every W samples the sums are re-added from the blocks, so rounding cannot drift.
