@@ -449,10 +449,11 @@ class IdentificationCore:
         explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
         total = 0
         source = self.inputs[stream]
-        read = items[0][2]  # serialized messages of one layout, all from one subscription: read at once
-        block = extract_batch(read, [m for _, m, _ in items]) if all(r is read for _, _, r in items) else None
+        receives, messages, reads = zip(*items)
+        read = reads[0]  # serialized messages of one layout, all from one subscription: read at once
+        block = extract_batch(read, list(messages)) if reads.count(read) == len(reads) else None
         if block is not None:
-            return self._counted(stream, [receive for receive, _, _ in items], block)
+            return self._counted(stream, receives, block)
         for receive, msg, read in items:
             try:
                 x, stamp = read(msg)
@@ -493,7 +494,7 @@ class IdentificationCore:
             stamps[start:start + t.size] = t
         return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
 
-    def _counted(self, stream: str, receives: list[float], block: np.ndarray) -> tuple | None:
+    def _counted(self, stream: str, receives: tuple[float, ...], block: np.ndarray) -> tuple | None:
         """``_stamped`` for messages of one layout without a header stamp (``extract_batch``'s
         block, a row per message): the stamper counts the first samples of all of them at once."""
         n = self.inputs[stream].message_samples = block.shape[1]
