@@ -53,6 +53,34 @@ def test_a_sequence_of_solves_equals_the_in_process_one(solver):
     assert here.stats.solves == there.stats.solves > 10
 
 
+def test_batches_of_slid_windows_give_the_in_process_outcomes():
+    """Snapshots submitted in batches of 3 with at most 2 batches unanswered (replay's pipeline),
+    their windows sent as the samples new since the last snapshot: the outcomes are those of the
+    in-process solves, also across a gap that restarts the window (sent whole again)."""
+    v, y = hammerstein_record(16_000, seed=5)
+    t = np.arange(v.size) / 1000.0
+    t[9000:] += 5.0  # a 5 s gap in both streams: the window restarts empty after it
+    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
+    expected, kept = [], []
+    with SolverProcess("fork", batch=3) as process:
+        process.max_sent = 6
+        for start in range(0, v.size, 500):
+            part = slice(start, start + 500)
+            for engine in (here, there):
+                engine.add_excitation(t[part], v[part])
+                engine.add_response(t[part], y[part])
+            expected.append(here.solve())
+            snapshot = there.snapshot()
+            kept.append(process._kept(snapshot))
+            process.submit(snapshot)
+        outcomes = [process.result() for _ in expected]
+    assert here.stats.gaps == 1 and kept.count(0) >= 2 and max(kept) == CONFIG.window - 500
+    for local, remote in zip(expected, outcomes, strict=True):
+        assert (remote.status, remote.reason, remote.doc, remote.markov) == (local.status, local.reason, local.doc,
+                                                                              local.markov)
+    assert sum(o.ok for o in outcomes) > 10
+
+
 def test_the_worker_keeps_the_published_model_of_the_epoch_for_the_keep_check(solver):
     """A window whose own estimate is poor (slow coloured output noise over few samples) keeps
     the model of a clean window: the worker uses the model it made in the same epoch, which never
