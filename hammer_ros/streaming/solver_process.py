@@ -63,14 +63,15 @@ def _serve(connection) -> None:
         if batch is None:
             return
         outcomes = []
-        for kept, snapshot in batch:
+        for kept, sent in batch:
+            if sent.epoch != epoch:
+                epoch, published, reference = sent.epoch, None, 0.0
+            v, y = sent.v, sent.y
             if kept:  # the window's oldest samples are the newest of the last window (``SolverProcess._kept``)
-                snapshot = replace(snapshot, v=np.concatenate([last.v[last.v.size - kept:], snapshot.v]),
-                                   y=np.concatenate([last.y[last.y.size - kept:], snapshot.y]))
-            last = snapshot
-            if snapshot.epoch != epoch:
-                epoch, published, reference = snapshot.epoch, None, 0.0
-            outcome = solve_snapshot(replace(snapshot, published=published, reference_std=reference))
+                tail = slice(last.v.size - kept, None)
+                v, y = np.concatenate([last.v[tail], v]), np.concatenate([last.y[tail], y])
+            last = snapshot = replace(sent, v=v, y=y, published=published, reference_std=reference)
+            outcome = solve_snapshot(snapshot)
             if outcome.ok:
                 published, reference = outcome.result, max(reference, outcome.input_std)
             outcomes.append(replace(outcome, result=None))
