@@ -7,8 +7,9 @@ the node's output messages, written into an MCAP (``out``) and/or handed to a li
 It prints nothing; ``ReplayResult.document()`` is the ``replay --json`` document.
 
 With a ``SolverProcess`` the solves run in a worker process while the loop reads on: a solve's
-snapshot is sent at its bag time, and the outcomes that have arrived are collected in order
-(their messages written) whenever a solve is due, and all at the end. The messages, their stamps
+snapshot is submitted at its bag time (sent in batches of SOLVE_BATCH), and the outcomes that
+have arrived are collected in order (their messages written) whenever a solve is due, and all at
+the end. The messages, their stamps
 and counters are those of the in-process loop (the counters and read statistics are taken at
 the snapshot, and the worker holds the published model), so the output file is the same either
 way; only the wall time differs.
