@@ -118,7 +118,14 @@ class Observer:
             d = self.diagnostics[-1] if self.diagnostics else {}
             return all(abs(float(d.get(f"last_stamp_{s}", "nan")) - stamp) < 1e-6 for s in ("excitation", "response"))
 
-        return self.listener.wait_for(lambda: caught_up() and self.diagnostics[-1], what=f"the node at stamp {stamp}")
+        try:
+            return self.listener.wait_for(lambda: caught_up() and self.diagnostics[-1],
+                                          what=f"the node at stamp {stamp}")
+        except AssertionError as exc:  # say where the node stood (what it received, lost, dropped)
+            d = self.diagnostics[-1] if self.diagnostics else {}
+            words = ("stamp", "received", "missing", "lost", "dropped")
+            seen = {k: v for k, v in d.items() if any(w in k for w in words)}
+            raise AssertionError(f"{exc}; {len(self.diagnostics)} diagnostics, the last: {seen}") from None
 
     def next_solve(self) -> dict:
         seen = len(self.diagnostics)
