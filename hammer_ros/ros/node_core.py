@@ -443,17 +443,17 @@ class IdentificationCore:
         message's samples read (a bad one counted and skipped), then per message only its first
         stamp found; the stamps of all samples are made at once, ``first + k / fs`` for the k-th
         sample of each message. Messages of one layout without a header stamp: ``_counted``."""
+        receives, messages, reads = zip(*items)
+        read = reads[0]  # serialized messages of one layout, all from one subscription: read at once
+        block = extract_batch(read, list(messages)) if reads.count(read) == len(reads) else None
+        if block is not None:
+            return self._counted(stream, receives, block)
         firsts: list[float] = []
         sizes: list[int] = []
         values: list = []
         explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
         total = 0
         source = self.inputs[stream]
-        receives, messages, reads = zip(*items)
-        read = reads[0]  # serialized messages of one layout, all from one subscription: read at once
-        block = extract_batch(read, list(messages)) if reads.count(read) == len(reads) else None
-        if block is not None:
-            return self._counted(stream, receives, block)
         for receive, msg, read in items:
             try:
                 x, stamp = read(msg)

@@ -95,11 +95,15 @@ class SolverProcess:
         child.close()
         self.batch = batch
         self.max_sent = MAX_SENT_BATCHES * batch
-        self.in_flight = 0
         self._last: EngineSnapshot | None = None  # the last snapshot submitted (its whole window)
         self._unsent: list[tuple[int, EngineSnapshot]] = []
         self._sent = 0  # solves sent whose outcomes have not been read
         self._outcomes: deque[SolveOutcome] = deque()  # read, not yet taken by ``result``
+
+    @property
+    def in_flight(self) -> int:
+        """Solves submitted whose outcomes ``result`` has not returned yet."""
+        return len(self._unsent) + self._sent + len(self._outcomes)
 
     @property
     def pid(self) -> int | None:
@@ -117,7 +121,6 @@ class SolverProcess:
         self._unsent.append((kept, replace(snapshot, published=None, stats=None,  # the counters stay here
                                            v=snapshot.v[kept:], y=snapshot.y[kept:])))
         self._last = snapshot
-        self.in_flight += 1
         if len(self._unsent) >= self.batch:
             self._send()
 
@@ -157,7 +160,6 @@ class SolverProcess:
             if self._sent == 0:
                 self._send()
             self._read()
-        self.in_flight -= 1
         return self._outcomes.popleft()
 
     def _read(self) -> None:
