@@ -188,18 +188,20 @@ def test_replay_refine_refines_every_solve_and_fits_at_least_as_well(capsys):
 def test_the_solver_process_is_started_only_when_the_solves_outweigh_its_start(capsys, monkeypatch):
     """The sample bag's 2 solves per second (over 20 CLS solves, well below OVERLAP_SECONDS) run
     in process; with the threshold at zero the same replay runs them in a SolverProcess, with
-    the same model."""
+    the same model (documented at the end only: the worker skips the others' documents)."""
     import hammer_ros.cli.replay as replay_cli
 
     started = []
     real = replay_cli.SolverProcess
-    monkeypatch.setattr(replay_cli, "SolverProcess", lambda *args: started.append(args) or real(*args))
+    monkeypatch.setattr(replay_cli, "SolverProcess",
+                        lambda *args, **options: started.append((args, options)) or real(*args, **options))
     argv = ("replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "2", "--json")
     alone = run_json(capsys, *argv)
     assert not started and alone["solves"] > 20
     monkeypatch.setattr(replay_cli, "OVERLAP_SECONDS", 0.0)
     beside = run_json(capsys, *argv)
-    assert started == [("fork", 8)]  # no thread, no middleware in replay: forked, loaded; 8 snapshots a transfer
+    # no thread, no middleware in replay: forked, loaded; 8 snapshots a transfer; no --out: no documents but the last
+    assert started == [(("fork", 8), {"documents": False})]
     for doc in (alone, beside):
         doc.pop("wall_s")
     assert beside == alone

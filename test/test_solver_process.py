@@ -81,6 +81,35 @@ def test_batches_of_slid_windows_give_the_in_process_outcomes():
     assert sum(o.ok for o in outcomes) > 10
 
 
+def test_without_documents_the_outcomes_are_the_in_process_ones_and_the_last_good_model_is_documented():
+    """``documents=False`` (replay without --out): every outcome has the in-process status and
+    reason (the keep check uses the fit alone) but no doc or markov; ``document`` then gives the
+    last ok outcome's doc and markov exactly as the in-process solve made them."""
+    v, y = hammerstein_record(12_000, seed=7)
+    t = np.arange(v.size) / 1000.0
+    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
+    expected = []
+    with SolverProcess("fork", batch=4, documents=False) as process:
+        assert process.document() is None  # no model yet
+        for start in range(0, v.size, 500):
+            part = slice(start, start + 500)
+            for engine in (here, there):
+                engine.add_excitation(t[part], v[part])
+                engine.add_response(t[part], y[part])
+            expected.append(here.solve())
+            process.submit(there.snapshot())
+        with pytest.raises(RuntimeError, match="in flight"):
+            process.document()
+        outcomes = [process.result() for _ in expected]
+        documented = process.document()
+    for local, remote in zip(expected, outcomes, strict=True):
+        assert (remote.ok, remote.status, remote.reason) == (local.ok, local.status, local.reason)
+        assert remote.doc is None and remote.markov == ()
+    last_ok = [o for o in expected if o.ok][-1]
+    assert sum(o.ok for o in outcomes) > 10 and documented.result is None
+    assert (documented.doc, documented.markov, documented.stamp) == (last_ok.doc, last_ok.markov, last_ok.stamp)
+
+
 def test_the_worker_keeps_the_published_model_of_the_epoch_for_the_keep_check(solver):
     """A window whose own estimate is poor (slow coloured output noise over few samples) keeps
     the model of a clean window: the worker uses the model it made in the same epoch, which never

@@ -160,7 +160,9 @@ def run(args: argparse.Namespace) -> int:
     stop = SignalStop()
     try:
         if args.rate is None and expected_solve_seconds(config, solve_rate * bag_duration(args.bag)) >= OVERLAP_SECONDS:
-            solver = SolverProcess("fork", SOLVE_BATCH)  # no thread, no middleware yet: the worker starts loaded
+            # Forked: no thread, no middleware yet, so the worker starts loaded. Documents only for --out
+            # (without it, only the last good model's is printed).
+            solver = SolverProcess("fork", SOLVE_BATCH, documents=args.out is not None)
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
 

@@ -12,7 +12,8 @@ have arrived are collected in order (their messages written) whenever a solve is
 the end. The messages, their stamps
 and counters are those of the in-process loop (the counters and read statistics are taken at
 the snapshot, and the worker holds the published model), so the output file is the same either
-way; only the wall time differs.
+way; only the wall time differs. A solver without documents (``SolverProcess(documents=False)``,
+when nothing is written or published) documents the last good model only, at the end.
 """
 
 from __future__ import annotations
@@ -190,6 +191,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             if progress:
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
         solve(bag_time, final=True)  # the final model, also after a signal
+        if solver is not None and last_ok is not None and last_ok.doc is None:  # solved without documents
+            last_ok, last = (documented := solver.document()), documented if last is last_ok else last
         if progress:
             progress(done, engine.stats.aligned, engine.stats.solves, True)
         complete = True

@@ -69,19 +69,21 @@ class _Stream:
     def segment_end(self, index: int, max_gap: float) -> tuple[float, float | None]:
         """(stamp where the segment holding sample ``index`` ends, stamp of the first sample after
         the gap that ends it, or None while the segment is still open)."""
-        jumps = np.flatnonzero(np.diff(self.t[index:]) > max_gap)
-        if jumps.size == 0:
-            return float(self.t[-1]), None
-        j = index + int(jumps[0])
-        return float(self.t[j]), float(self.t[j + 1])
+        t = self.t
+        steps = t[index + 1 :] - t[index:-1]
+        if steps.size == 0 or steps.max() <= max_gap:
+            return float(t[-1]), None
+        j = index + int(np.argmax(steps > max_gap))
+        return float(t[j]), float(t[j + 1])
 
-    def values_at(self, grid: np.ndarray, tol: float, interpolation: str) -> np.ndarray:
+    def values_at(self, grid: np.ndarray, tol: float, interpolation: str, start: int) -> np.ndarray:
+        """The stream's values at the grid points (``start``: the index of the last sample at or before
+        grid[0] + tol, -1 for none)."""
         if interpolation == "linear":
             return np.interp(grid, self.t, self.x)
         t, x = self.t, self.x
-        start = int(np.searchsorted(t, grid[0] + tol, side="right")) - 1
         stamps = t[max(start, 0) : start + grid.size]
-        if start >= 0 and stamps.size == grid.size and np.all(np.abs(stamps - grid) <= tol):
+        if start >= 0 and stamps.size == grid.size and np.abs(stamps - grid).max() <= tol:
             return x[start : start + grid.size]  # a sample at every grid point: the hold is the samples
         return x[np.searchsorted(t, grid + tol, side="right") - 1]
 
@@ -208,8 +210,7 @@ class StreamAligner:
         if t.size != x.size:
             raise ValueError(f"{stream}: {t.size} stamps for {x.size} samples")
         self._count_received(stream, x.size)
-        with np.errstate(invalid="ignore"):
-            finite = np.isfinite(t) & (np.abs(x) <= MAX_ABS_SAMPLE)  # False for NaN and inf too
+        finite = np.isfinite(t) & (np.abs(x) <= MAX_ABS_SAMPLE)  # False for NaN and inf too (comparisons never warn)
         kept = int(np.count_nonzero(finite))
         if kept < x.size:
             self.stats.nan_skipped += x.size - kept
@@ -230,7 +231,7 @@ class StreamAligner:
             return 0
         if s.jumped and t[0] > s.last:
             self._drop_jumped(s)
-        if not s.jumped and t[0] > s.last and (t.size == 1 or np.diff(t).min() > 0):  # in order: all new
+        if not s.jumped and t[0] > s.last and (t[1:] > t[:-1]).all():  # in order: all new
             return self._append(stream, t, x)
         newest = np.maximum.accumulate(np.concatenate([[s.last], t]))[:-1]
         back = np.flatnonzero(t < newest - self._reset_threshold())
@@ -335,15 +336,15 @@ class StreamAligner:
             tk = self._next_grid_time(ex, max(ex.t[0], re.t[0]), tol)
             if tk is None:
                 return
-            ends = {}
+            ends, starts = {}, []
             for name, s in (("excitation", ex), ("response", re)):
-                index = int(np.searchsorted(s.t, tk + tol, side="right")) - 1
-                ends[name] = s.segment_end(max(index, 0), max_gap)
+                starts.append(int(np.searchsorted(s.t, tk + tol, side="right")) - 1)
+                ends[name] = s.segment_end(max(starts[-1], 0), max_gap)
             end = min(e for e, _ in ends.values())
-            grid = self._grid_until(ex, tk, end + tol)
+            grid = self._grid_until(ex, tk, end + tol)  # from tk on
             if grid.size:
-                self._emit_grid(grid, ex.values_at(grid, tol, cfg.interpolation),
-                                re.values_at(grid, tol, cfg.interpolation))
+                self._emit_grid(grid, ex.values_at(grid, tol, cfg.interpolation, starts[0]),
+                                re.values_at(grid, tol, cfg.interpolation, starts[1]))
                 for s in (ex, re):  # keep the last sample at or before the newest grid point
                     s.drop(max(0, int(np.searchsorted(s.t, grid[-1] + tol, side="right")) - 1))
             blocked = [(name, resume) for name, (e, resume) in ends.items() if resume is not None and e <= end]

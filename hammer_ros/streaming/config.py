@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
@@ -168,5 +168,8 @@ class EngineStats:
         return doc
 
     def copy(self) -> EngineStats:
-        return replace(self, first_stamp=dict(self.first_stamp), last_stamp=dict(self.last_stamp),
-                       accepted=dict(self.accepted), bad_values=dict(self.bad_values))
+        """A copy (its dicts copied too; without ``replace``'s __init__, a quarter of its time: one per solve)."""
+        copied = object.__new__(EngineStats)
+        copied.__dict__.update(self.__dict__, first_stamp=dict(self.first_stamp), last_stamp=dict(self.last_stamp),
+                               accepted=dict(self.accepted), bad_values=dict(self.bad_values))
+        return copied

@@ -40,9 +40,10 @@ def _lag_products(v: np.ndarray, y: np.ndarray, tau_max: int, weights: np.ndarra
         x = scipy.fft.rfft(np.stack([v, v * v]), n, axis=1)
         c = np.conj(scipy.fft.rfft(np.stack([centre_v, centre_y]), n, axis=1))
         sums = scipy.fft.irfft(np.stack([x[0] * c[0], x[0] * c[1], x[1] * c[1]]), n, axis=1)[:, : 2 * tau_max + 1]
-    else:
-        sums = np.stack([np.correlate(v, centre_v, "valid"), np.correlate(v, centre_y, "valid"),
-                         np.correlate(v * v, centre_y, "valid")])
+        return sums[:, ::-1]
+    sums = np.empty((3, 2 * tau_max + 1))  # tau = T..-T, reversed on return
+    sums[0], sums[1], sums[2] = (np.correlate(v, centre_v, "valid"), np.correlate(v, centre_y, "valid"),
+                                 np.correlate(v * v, centre_y, "valid"))
     return sums[:, ::-1]
 
 

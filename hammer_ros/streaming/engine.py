@@ -267,13 +267,15 @@ def window_problem(snapshot: EngineSnapshot) -> tuple[str, str, float, float]:
     return "", "", cond, spread
 
 
-def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
+def solve_snapshot(snapshot: EngineSnapshot, document: bool = True) -> SolveOutcome:
     """Identify the configured model on a snapshot (pure; may run in a worker thread).
 
     CLS (paper 000 sec. 3.1): step 1 on the snapshot's correlation sums, step 2 on the raw
     window; other methods: ``methods.identify`` on the raw window. Not ok (with the reason) when
     the window is not ``min_fill`` full, the input is not persistently exciting or the method
-    fails on the data."""
+    fails on the data. ``document=False``: an ok outcome without ``doc`` and ``markov`` (what only the
+    outputs read; ``document_outcome`` adds them): the model's fit on the window, which the choice
+    against the published model needs, is computed alone."""
     started = time.perf_counter()
     cfg, v, y = snapshot.config, snapshot.v, snapshot.y
 
@@ -297,8 +299,9 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
                 from ..identification.refinement import refine_result
 
                 result = refine_result(result, v, y)
-            doc = result.to_json(v, y)
-            kept = _published_fits_better(snapshot.published, v, y, doc.get("fit_percent"))
+            doc = result.to_json(v, y) if document else None
+            fit = doc.get("fit_percent") if document else fit_percent(y, result.simulate(v))
+            kept = _published_fits_better(snapshot.published, v, y, fit)
     except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
         return outcome(False, f"{cfg.method}: {exc}", cond=cond, status="failed")
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
@@ -310,10 +313,23 @@ def solve_snapshot(snapshot: EngineSnapshot) -> SolveOutcome:
     if kept:
         return outcome(False, f"kept the published model: it fits the window better ({kept})", cond=cond,
                        status="kept")
+    return outcome(True, "", result, doc, cond, markov=_markov(result, doc) if document else ())
+
+
+def document_outcome(outcome: SolveOutcome, v: np.ndarray, y: np.ndarray) -> SolveOutcome:
+    """An ok outcome of ``solve_snapshot(..., document=False)`` on the window (v, y) with the
+    ``doc`` and ``markov`` that ``document=True`` gives."""
+    with np.errstate(all="ignore"):
+        doc = outcome.result.to_json(v, y)
+    return replace(outcome, doc=doc, markov=_markov(outcome.result, doc))
+
+
+def _markov(result: IdentificationResult, doc: dict) -> tuple[float, ...]:
+    """The model's first 2n + 1 Markov parameters (the method's own when its document has them)."""
     markov = doc.get("markov")
     if markov is None:
         markov = result.linear.markov_parameters(2 * result.linear.order + 1).tolist()
-    return outcome(True, "", result, doc, cond, markov=tuple(map(float, markov)))
+    return tuple(map(float, markov))
 
 
 
@@ -325,7 +341,7 @@ def _published_fits_better(published: IdentificationResult | None, v: np.ndarray
     if published is None:
         return ""
     old_fit = fit_percent(y, published.simulate(v))
-    new = -np.inf if new_fit is None else new_fit
+    new = -np.inf if new_fit is None or not math.isfinite(new_fit) else new_fit
     if not np.isfinite(old_fit) or new >= old_fit - KEEP_MARGIN:
         return ""
     return f"fit {old_fit:.1f} % vs {new:.1f} % for the new estimate"

@@ -1,30 +1,31 @@
 """Solves in a worker process of their own, so that a solve never holds the interpreter lock
 against ingestion (the node's executor, replay's decoding).
 
-``SolverProcess`` starts one process (by default the ``spawn`` method, safe beside the threads of
-a ROS node and its middleware; ``fork`` for an owner with no other thread, e.g. replay without
-ROS: the worker then starts with the owner's modules loaded, in milliseconds instead of ~1 s) that
-runs ``engine.solve_snapshot`` on the snapshots it is sent, in order. A snapshot (its
-correlation sums and the raw window, about 70 kB at W = 4000; of a window that slid, only the
-samples new since the last snapshot, the worker keeping the rest) crosses by a pipe; the outcome
-comes back without its ``result`` (a model holds its simulator, which stays in the worker) but
-with everything the outputs are built from (``doc``, ``markov``). Several snapshots may be in
-flight (replay sends the next one while the worker still solves), so the state a solve depends
-on lives in the worker: the published model and the reference input std of the engine's
-``epoch``, updated from each outcome exactly as ``StreamingEngine.record`` updates the engine's.
-A sequence of snapshots thus gives the outcomes of in-process ``solve_snapshot`` with the
-engine's own state; a new epoch (new engine, new settings) starts without a published model,
-as the engine does. Snapshots travel in batches (``batch`` per transfer: one serialisation, one system
-call and one wake-up of the worker for several solves; replay sends 8) and their outcomes come
-back the same way. The pipe's socket buffers (about 200 kB each way) are the queues: sending
-returns at once while the worker's side has room and waits for the worker otherwise (the
-back-pressure of a worker that is behind). The owner never has more than MAX_SENT_BATCHES
-batches unanswered (it reads outcomes before sending more), so their answers fit the buffer and
-the worker never waits for the owner to read: neither side can block the other. ``solve`` (the
-node's use: one snapshot at a time) sends and waits for the outcome. No thread is involved: in
-the owner, a thread that serialises beside replay's reading loop took the interpreter lock from it
-at every numpy call that released it; in the worker, a thread that sends the answers made the
-pipeline stall (replay of the bench's 100-sample bag: 1.06 s without it, 1.75-1.88 s with it).
+``SolverProcess`` starts one process (by default the ``spawn`` method, safe beside the threads of a
+ROS node and its middleware; ``fork`` for an owner with no other thread, e.g. replay without ROS:
+the worker then starts with the owner's modules loaded, in milliseconds instead of ~1 s) that runs
+``engine.solve_snapshot`` on the snapshots it is sent, in order. A snapshot (its correlation sums
+and the raw window, about 70 kB at W = 4000; of a window that slid, only the samples new since the
+last snapshot, the worker keeping the rest) crosses by a pipe; the outcome comes back without its
+``result`` (a model holds its simulator, which stays in the worker) but with everything the outputs
+are built from (``doc``, ``markov``; with ``documents=False`` the worker skips them, about a third
+of a CLS solve, and documents the last good model on request). Several snapshots may be in flight
+(replay sends the next one while the worker still solves), so the state a solve depends on lives in
+the worker: the published model and the reference input std of the engine's ``epoch``, updated from
+each outcome exactly as ``StreamingEngine.record`` updates the engine's. A sequence of snapshots
+thus gives the outcomes of in-process ``solve_snapshot`` with the engine's own state; a new epoch
+(new engine, new settings) starts without a published model, as the engine does. Snapshots travel
+in batches (``batch`` per transfer: one serialisation, one system call and one wake-up of the
+worker for several solves; replay sends 8) and their outcomes come back the same way. The pipe's
+socket buffers (about 200 kB each way) are the queues: sending returns at once while the worker's
+side has room and waits for the worker otherwise (the back-pressure of a worker that is behind).
+The owner never has more than MAX_SENT_BATCHES batches unanswered (it reads outcomes before sending
+more), so their answers fit the buffer and the worker never waits for the owner to read: neither
+side can block the other. ``solve`` (the node's use: one snapshot at a time) sends and waits for
+the outcome. No thread is involved: in the owner, a thread that serialises beside replay's reading
+loop took the interpreter lock from it at every numpy call that released it; in the worker, a
+thread that sends the answers made the pipeline stall (replay of the bench's 100-sample bag: 1.06 s
+without it, 1.75-1.88 s with it).
 
 The worker ignores SIGINT and SIGTERM (sent to a whole process group, they are for the owner,
 which handles them and then closes the worker); it exits when the owner closes the pipe or
@@ -40,21 +41,24 @@ from dataclasses import replace
 
 import numpy as np
 
-from .engine import EngineSnapshot, SolveOutcome, solve_snapshot
+from .engine import EngineSnapshot, SolveOutcome, document_outcome, solve_snapshot
 
 CLOSE_TIMEOUT = 2.0  # s the worker gets to exit before it is killed
 # Batches sent and not yet answered, at most: the worker answers without waiting for the owner to read
 # as long as their outcomes (~2 kB each, a doc and the Markov parameters) fit the socket's buffer (~200 kB).
 MAX_SENT_BATCHES = 4
+DOCUMENT = "document"  # the request for the published model's documented outcome (``SolverProcess.document``)
 
 
-def _serve(connection) -> None:
+def _serve(connection, documents: bool) -> None:
     """The worker: solve each snapshot of each batch received with the state of its epoch and
-    answer with the batch's outcomes, in order."""
+    answer with the batch's outcomes, in order; answer DOCUMENT with the published model's
+    outcome, documented."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     epoch, published, reference = None, None, 0.0
     last: EngineSnapshot | None = None
+    published_outcome: tuple[SolveOutcome, np.ndarray, np.ndarray] | None = None  # with its window (v, y)
     while True:
         try:
             batch = connection.recv()
@@ -62,18 +66,23 @@ def _serve(connection) -> None:
             return
         if batch is None:
             return
+        if batch == DOCUMENT:
+            answer = None if published_outcome is None else replace(document_outcome(*published_outcome), result=None)
+            connection.send(answer)
+            continue
         outcomes = []
         for kept, sent in batch:
             if sent.epoch != epoch:
-                epoch, published, reference = sent.epoch, None, 0.0
+                epoch, published, reference, published_outcome = sent.epoch, None, 0.0, None
             v, y = sent.v, sent.y
             if kept:  # the window's oldest samples are the newest of the last window (``SolverProcess._kept``)
                 tail = slice(last.v.size - kept, None)
                 v, y = np.concatenate([last.v[tail], v]), np.concatenate([last.y[tail], y])
             last = snapshot = replace(sent, v=v, y=y, published=published, reference_std=reference)
-            outcome = solve_snapshot(snapshot)
+            outcome = solve_snapshot(snapshot, documents)
             if outcome.ok:
                 published, reference = outcome.result, max(reference, outcome.input_std)
+                published_outcome = (outcome, v, y)
             outcomes.append(replace(outcome, result=None))
         try:
             connection.send(outcomes)
@@ -85,12 +94,15 @@ class SolverProcess:
     """``solve_snapshot`` in a worker process: ``submit`` snapshots and go on, collect their
     outcomes in order with ``result`` (``ready`` says whether one has arrived), or ``solve``.
     ``batch``: snapshots sent together (one transfer, one wake-up of the worker; ``result`` sends
-    a partial batch before it waits)."""
+    a partial batch before it waits). ``documents=False``: ok outcomes come without ``doc`` and
+    ``markov`` (``solve_snapshot(..., document=False)``: for an owner that writes no outputs and
+    reads the last model's document only, ``document``)."""
 
-    def __init__(self, start_method: str = "spawn", batch: int = 1) -> None:
+    def __init__(self, start_method: str = "spawn", batch: int = 1, documents: bool = True) -> None:
         context = multiprocessing.get_context(start_method)
         self._connection, child = context.Pipe()
-        self._process = context.Process(target=_serve, args=(child,), name="hammer_ros_solver", daemon=True)
+        self._process = context.Process(target=_serve, args=(child, documents), name="hammer_ros_solver",
+                                        daemon=True)
         self._process.start()
         child.close()
         self.batch = batch
@@ -170,6 +182,17 @@ class SolverProcess:
             raise RuntimeError(self._exited()) from error
         self._sent -= len(outcomes)
         self._outcomes.extend(outcomes)
+
+    def document(self) -> SolveOutcome | None:
+        """The last ok outcome (of the newest epoch) with its ``doc`` and ``markov``; None before one.
+        Every outcome submitted must have been taken by ``result``."""
+        if self.in_flight:
+            raise RuntimeError(f"{self.in_flight} solves in flight: take their outcomes first")
+        try:
+            self._connection.send(DOCUMENT)
+            return self._connection.recv()
+        except (EOFError, OSError) as error:
+            raise RuntimeError(self._exited()) from error
 
     def solve(self, snapshot: EngineSnapshot) -> SolveOutcome:
         """The outcome of ``snapshot`` (waits for it and for the solves submitted before it)."""
