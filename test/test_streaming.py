@@ -324,6 +324,13 @@ def test_batch_messages_put_the_last_sample_at_the_stamp():
     assert inferred.add_message("response", 1.1, np.arange(10.0)) == 10
     # spacing from the previous message while fs is unknown
     np.testing.assert_allclose(inferred.message_stamps("response", 1.2, 4), [1.125, 1.15, 1.175, 1.2])
+    # the offsets of one (count, spacing) are reused, a new count or spacing gets its own, every result is a new array
+    first = engine.message_stamps("excitation", 3.0, 5)
+    first[:] = 0.0
+    np.testing.assert_allclose(engine.message_stamps("excitation", 4.0, 5), [3.96, 3.97, 3.98, 3.99, 4.0])
+    np.testing.assert_allclose(engine.message_stamps("excitation", 5.0, 3), [4.98, 4.99, 5.0])
+    np.testing.assert_allclose(inferred.message_stamps("response", 1.3, 4), [1.225, 1.25, 1.275, 1.3])
+    np.testing.assert_allclose(inferred.message_stamps("response", 1.5, 4), [1.35, 1.4, 1.45, 1.5])
 
 
 def test_solve_outcome_is_the_document_of_its_result(record):

@@ -105,6 +105,7 @@ class StreamAligner:
         self._k = 0
         self._last_grid = -np.inf
         self._segment_samples = 0
+        self._offsets: tuple[int, float, np.ndarray] = (0, 0.0, np.empty(0))  # message_stamps' last (count, period)
 
     def regrid(self, config: EngineConfig) -> None:
         """A new sample_rate: the grid restarts at the next excitation sample (0 = keep the old
@@ -130,7 +131,9 @@ class StreamAligner:
             period = (stamp - previous) / count
         else:
             return None
-        return stamp - period * np.arange(count - 1, -1, -1)
+        if self._offsets[:2] != (count, period):  # messages of one size at one rate: the offsets once
+            self._offsets = (count, period, period * np.arange(count - 1, -1, -1))
+        return stamp - self._offsets[2]
 
     def add_message(self, stream: str, stamp: float, values: np.ndarray, flush: bool = True) -> int:
         """Add one message's samples (batch convention of ``message_stamps``); returns how many
