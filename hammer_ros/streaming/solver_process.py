@@ -8,24 +8,24 @@ the worker then starts with the owner's modules loaded, in milliseconds instead 
 and the raw window, about 70 kB at W = 4000; of a window that slid, only the samples new since the
 last snapshot, the worker keeping the rest) crosses by a pipe; the outcome comes back without its
 ``result`` (a model holds its simulator, which stays in the worker) but with everything the outputs
-are built from (``doc``, ``markov``; with ``documents=False`` the worker skips them, about a third
-of a CLS solve, and documents the last good model on request). Several snapshots may be in flight
-(replay sends the next one while the worker still solves), so the state a solve depends on lives in
-the worker: the published model and the reference input std of the engine's ``epoch``, updated from
-each outcome exactly as ``StreamingEngine.record`` updates the engine's. A sequence of snapshots
-thus gives the outcomes of in-process ``solve_snapshot`` with the engine's own state; a new epoch
-(new engine, new settings) starts without a published model, as the engine does. Snapshots travel
-in batches (``batch`` per transfer: one serialisation, one system call and one wake-up of the
-worker for several solves; replay sends 8) and their outcomes come back the same way. The pipe's
-socket buffers (about 200 kB each way) are the queues: sending returns at once while the worker's
-side has room and waits for the worker otherwise (the back-pressure of a worker that is behind).
-The owner never has more than MAX_SENT_BATCHES batches unanswered (it reads outcomes before sending
-more), so their answers fit the buffer and the worker never waits for the owner to read: neither
-side can block the other. ``solve`` (the node's use: one snapshot at a time) sends and waits for
-the outcome. No thread is involved: in the owner, a thread that serialises beside replay's reading
-loop took the interpreter lock from it at every numpy call that released it; in the worker, a
-thread that sends the answers made the pipeline stall (replay of the bench's 100-sample bag: 1.06 s
-without it, 1.75-1.88 s with it).
+are built from (``doc``, ``markov``; with ``documents=False`` the worker skips them, a tenth to a
+sixth of a CLS solve, and documents the last good model on request). Several snapshots may be in
+flight (replay sends the next one while the worker still solves), so the state a solve depends on
+lives in the worker: the published model and the reference input std of the engine's ``epoch``,
+updated from each outcome exactly as ``StreamingEngine.record`` updates the engine's. A sequence of
+snapshots thus gives the outcomes of in-process ``solve_snapshot`` with the engine's own state; a
+new epoch (new engine, new settings) starts without a published model, as the engine does.
+Snapshots travel in batches (``batch`` per transfer: one serialisation, one system call and one
+wake-up of the worker for several solves; replay sends 8) and their outcomes come back the same
+way. The pipe's socket buffers (about 200 kB each way) are the queues: sending returns at once
+while the worker's side has room and waits for the worker otherwise (the back-pressure of a worker
+that is behind). The owner never has more than MAX_SENT_BATCHES batches unanswered (it reads
+outcomes before sending more), so their answers fit the buffer and the worker never waits for the
+owner to read: neither side can block the other. ``solve`` (the node's use: one snapshot at a time)
+sends and waits for the outcome. No thread is involved: in the owner, a thread that serialises
+beside replay's reading loop took the interpreter lock from it at every numpy call that released
+it; in the worker, a thread that sends the answers made the pipeline stall (replay of the bench's
+100-sample bag: 1.06 s without it, 1.75-1.88 s with it).
 
 The worker ignores SIGINT and SIGTERM (sent to a whole process group, they are for the owner,
 which handles them and then closes the worker); it exits when the owner closes the pipe or
