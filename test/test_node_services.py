@@ -77,6 +77,10 @@ def test_diagnose_replies_with_the_diagnosis_json_and_publishes_it(rig):
     assert doc["samples"] == WINDOW and doc["cause"] == "none"  # a clean Hammerstein system
     assert {"baseline", "confidence", "evidence", "seconds"} <= set(doc)
     rig.wait_for(lambda: rig.diagnoses and rig.diagnoses[-1] == doc, what="the same diagnosis on ~/diagnosis")
+    call(rig, "solve")  # publishes /diagnostics
+    rig.wait_for(lambda: rig.observer.diagnostics[-1]["diagnosis"].startswith("process "),  # never the node's lock
+                 what="/diagnostics saying the diagnosis ran in the diagnosis process")
+    assert rig.observer.diagnostics[-1]["diagnosis"] != rig.observer.diagnostics[-1]["solver"]
 
 
 def test_solve_and_diagnose_refuse_a_window_that_is_not_exciting(rig):

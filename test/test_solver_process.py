@@ -1,6 +1,6 @@
 """``SolverProcess``: solves in a worker process give the outcomes of in-process solves (the
-published model for the keep check included), replay with it writes the same results, and a
-worker that dies is reported instead of hanging."""
+published model for the keep check included), so do diagnoses, replay with it writes the same
+results, and a worker that dies is reported instead of hanging."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from hammer_ros.io.bags import bag_duration, parse_stream_spec
 from hammer_ros.io.replay import replay_bag
 from hammer_ros.streaming.config import EngineConfig
 from hammer_ros.streaming.engine import StreamingEngine, solve_snapshot
-from hammer_ros.streaming.solver_process import SolverProcess
+from hammer_ros.streaming.solver_process import SolverProcess, diagnose_window
 from hammer_ros.tools.bench import feed_engine, hammerstein_record
 
 REPO = Path(__file__).resolve().parents[1]
@@ -128,6 +128,36 @@ def test_the_worker_keeps_the_published_model_of_the_epoch_for_the_keep_check(so
     assert first.ok and (second.status, second.reason) == (local.status, local.reason)
     fresh = solver.solve(replace(noisy, epoch=noisy.epoch + 10_000))  # a reset engine: the estimate is published
     assert fresh.ok
+
+
+def test_a_diagnosis_in_the_worker_is_the_in_process_one(solver):
+    """``diagnose`` runs ``diagnose_window`` in the worker (the node's diagnosis process): the same
+    document as in process, an unsaturated Hammerstein window diagnosed as such; a window that
+    cannot be diagnosed gives the same error."""
+    v, y = hammerstein_record(3000, seed=4)
+    there = solver.diagnose(v, y, 3)
+    _assert_same_document(there, diagnose_window(v, y, 3))
+    assert there["cause"] == "none" and {"baseline", "confidence", "evidence"} <= set(there)
+    short = solver.diagnose(v[:20], y[:20], 3)
+    assert short == diagnose_window(v[:20], y[:20], 3) and short["error"].startswith("window not diagnosable")
+
+
+def _assert_same_document(a, b, path: str = "") -> None:
+    """The same keys, strings and flags; numbers within 1e-6 relative: the candidates' iterative fits
+    move in the last bits with the arrays' memory alignment, which differs between processes."""
+    assert type(a) is type(b), path
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), path
+        for key in a:
+            _assert_same_document(a[key], b[key], f"{path}/{key}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, z) in enumerate(zip(a, b, strict=True)):
+            _assert_same_document(x, z, f"{path}[{i}]")
+    elif isinstance(a, float):
+        assert a == pytest.approx(b, rel=1e-6, abs=1e-12), path
+    else:
+        assert a == b, path
 
 
 def _messages(path: Path) -> list[tuple[str, int, bytes]]:

@@ -4,8 +4,9 @@ their checks; ``node`` runs it unmanaged, ``managed_node`` as a lifecycle node.
 A thin adapter over ``streaming.StreamingEngine``: two subscriptions (sensor-data QoS) feed the
 excitation and response samples into the engine, a worker thread solves on a snapshot of the
 window ``solve_rate`` times a second and publishes the results built by ``outputs``. The solve
-itself runs in a ``SolverProcess`` (parameter ``solver_process``, on by default), so it never
-holds the interpreter lock against the callbacks and the ingest thread. Ingestion never waits
+itself runs in a ``SolverProcess`` (parameter ``solver_process``, on by default), and so does
+the periodic diagnosis (a second one, started by the first diagnosis), so neither ever holds the
+interpreter lock against the callbacks and the ingest thread. Ingestion never waits
 for a solve (a slow solve skips solves, never samples); parameters are validated and
 applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
 without a new model republishes the last good one marked stale. With ``output_mcap`` every
@@ -55,7 +56,7 @@ from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
-from ..streaming.solver_process import SolverProcess  # noqa: E402
+from ..streaming.solver_process import SolverProcess, diagnose_window  # noqa: E402
 from .cdr import extract_batch, raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
@@ -120,8 +121,8 @@ PARAMETERS: dict[str, Spec] = {
     "refine": Spec(False, "bool", "refine each solve's estimate on the simulation error of the window "
                    "(identify --refine; slower solves, unbiased poles under output noise)"),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),
-    "solver_process": Spec(True, "bool", "solve in a worker process of the node's own, so that a solve never holds "
-                           "the interpreter lock against ingestion; false = in the node's solver thread",
+    "solver_process": Spec(True, "bool", "solve and diagnose in worker processes of the node's own, so that "
+                           "neither holds the interpreter lock against ingestion; false = in the node's threads",
                            read_only=True),
     "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
                              "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
@@ -276,6 +277,8 @@ class IdentificationCore:
         self.server = None  # foxglove_server.DashboardServer when foxglove_port > 0
         self.solver: SolverProcess | None = None  # when solver_process is true
         self.solver_lost = ""  # why the solver process is gone, when it went
+        self.diagnoser: SolverProcess | None = None  # the diagnoses' process, started by the first diagnosis
+        self.diagnoser_lost = ""  # why it is gone, when it went
         self._writer: ResultWriter | None = None
         self._outputs: dict[str, Any] = {}
         self.inputs = {s: _Input(s) for s in STREAMS}
@@ -356,9 +359,10 @@ class IdentificationCore:
         if self.server is not None:
             self.server.stop()
             self.server = None
-        if self.solver is not None:
-            self.solver.close()
-            self.solver = None
+        for worker in (self.solver, self.diagnoser):
+            if worker is not None:
+                worker.close()
+        self.solver = self.diagnoser = None
         for publisher in self._outputs.values():
             self._destroy_output_publisher(publisher)
         self._outputs = {}
@@ -612,6 +616,22 @@ class IdentificationCore:
             self._publish(outcome, stats, publish)
             return outcome
 
+    def _diagnosis(self, v: np.ndarray, y: np.ndarray) -> dict[str, Any]:
+        """``diagnose_window`` in the diagnosis process (with ``solver_process``; started by the
+        first diagnosis, so a node that never diagnoses never pays for it), or here when there is
+        none (or it is gone). Called under ``_diagnose_lock``."""
+        order = self.values["order"]
+        if self.values["solver_process"] and not self.diagnoser_lost:
+            try:
+                if self.diagnoser is None:
+                    self.diagnoser = SolverProcess()
+                return self.diagnoser.diagnose(v, y, order)
+            except RuntimeError as exc:
+                self.get_logger().error(f"diagnosis process lost ({exc}); diagnosing in the node's thread from now on")
+                self.diagnoser.close()
+                self.diagnoser, self.diagnoser_lost = None, str(exc)
+        return diagnose_window(v, y, order)
+
     def _solve(self, snapshot: EngineSnapshot) -> SolveOutcome:
         """``solve_snapshot`` in the solver process, or here when there is none (or it is gone)."""
         if self.solver is not None:
@@ -639,8 +659,6 @@ class IdentificationCore:
     def _diagnose_once(self, snapshot: EngineSnapshot | None = None) -> dict[str, Any]:
         """Diagnose the newest ``diagnosis_window`` samples of the window (of ``snapshot``, else of
         a new one), publish the JSON on ~/diagnosis and return it."""
-        from ..diagnosis.diagnose import diagnose_record  # imported on first use: matplotlib-free, but heavy
-
         if snapshot is None:
             with self._lock:
                 snapshot = self.engine.snapshot()
@@ -648,11 +666,7 @@ class IdentificationCore:
         v, y = snapshot.v[-newest:], snapshot.y[-newest:]
         started = time.perf_counter()
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
-        try:
-            with np.errstate(all="ignore"):
-                doc |= diagnose_record(v, y, order=self.values["order"]).to_json()
-        except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
-            doc["error"] = f"window not diagnosable: {exc}"
+        doc |= self._diagnosis(v, y)
         doc["seconds"] = time.perf_counter() - started
         values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
         self._send([("~/diagnosis", DIAGNOSIS_TYPE, values)], self._now(), publish=self.active)
@@ -740,6 +754,9 @@ class IdentificationCore:
             "loop_errors": self.loop_errors,
             "solver": (f"process {self.solver.pid}" if self.solver is not None
                        else "thread" + (f" ({self.solver_lost})" if self.solver_lost else "")),
+            "diagnosis": (f"process {self.diagnoser.pid}" if self.diagnoser is not None
+                          else f"thread ({self.diagnoser_lost})" if self.diagnoser_lost
+                          else "process, from the first diagnosis" if self.values["solver_process"] else "thread"),
             "window": self.values["window"],
             "method": self.values["method"],
         }

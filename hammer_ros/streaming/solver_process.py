@@ -4,7 +4,9 @@ against ingestion (the node's executor, replay's decoding).
 ``SolverProcess`` starts one process (by default the ``spawn`` method, safe beside the threads of a
 ROS node and its middleware; ``fork`` for an owner with no other thread, e.g. replay without ROS:
 the worker then starts with the owner's modules loaded, in milliseconds instead of ~1 s) that runs
-``engine.solve_snapshot`` on the snapshots it is sent, in order. A snapshot (its correlation sums
+``engine.solve_snapshot`` on the snapshots it is sent, in order (and, asked, ``diagnose_window``: the
+node diagnoses its window in a second one, so that a diagnosis never holds the node's interpreter
+lock either). A snapshot (its correlation sums
 and the raw window, about 70 kB at W = 4000; of a window that slid, only the samples new since the
 last snapshot, the worker keeping the rest) crosses by a pipe; the outcome comes back without its
 ``result`` (a model holds its simulator, which stays in the worker) but with everything the outputs
@@ -37,10 +39,12 @@ from __future__ import annotations
 import multiprocessing
 import signal
 from collections import deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
+from ..errors import UsageError
 from .engine import EngineSnapshot, SolveOutcome, document_outcome, solve_snapshot
 
 CLOSE_TIMEOUT = 2.0  # s the worker gets to exit before it is killed
@@ -50,10 +54,31 @@ MAX_SENT_BATCHES = 4
 DOCUMENT = "document"  # the request for the published model's documented outcome (``SolverProcess.document``)
 
 
+@dataclass(frozen=True, eq=False)
+class Diagnose:
+    """The request for ``diagnose_window(v, y, order)`` (``SolverProcess.diagnose``)."""
+
+    v: np.ndarray
+    y: np.ndarray
+    order: int
+
+
+def diagnose_window(v: np.ndarray, y: np.ndarray, order: int) -> dict[str, Any]:
+    """The ``hammer_ros.diagnosis.diagnose_record`` JSON of the window (v, y) (estimation on its
+    first 70 %, validation on the rest), or {"error": why} when the window cannot be diagnosed."""
+    from ..diagnosis.diagnose import diagnose_record  # imported on first use: matplotlib-free, but heavy
+
+    try:
+        with np.errstate(all="ignore"):
+            return diagnose_record(v, y, order=order).to_json()
+    except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
+        return {"error": f"window not diagnosable: {exc}"}
+
+
 def _serve(connection, documents: bool) -> None:
     """The worker: solve each snapshot of each batch received with the state of its epoch and
     answer with the batch's outcomes, in order; answer DOCUMENT with the published model's
-    outcome, documented."""
+    outcome, documented, and a ``Diagnose`` with its window's diagnosis."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     epoch, published, reference = None, None, 0.0
@@ -66,6 +91,9 @@ def _serve(connection, documents: bool) -> None:
             return
         if batch is None:
             return
+        if isinstance(batch, Diagnose):
+            connection.send(diagnose_window(batch.v, batch.y, batch.order))
+            continue
         if batch == DOCUMENT:
             answer = None if published_outcome is None else replace(document_outcome(*published_outcome), result=None)
             connection.send(answer)
@@ -186,10 +214,18 @@ class SolverProcess:
     def document(self) -> SolveOutcome | None:
         """The last ok outcome (of the newest epoch) with its ``doc`` and ``markov``; None before one.
         Every outcome submitted must have been taken by ``result``."""
+        return self._ask(DOCUMENT)
+
+    def diagnose(self, v: np.ndarray, y: np.ndarray, order: int) -> dict[str, Any]:
+        """``diagnose_window(v, y, order)`` in the worker (waits for it). Every outcome submitted
+        must have been taken by ``result``."""
+        return self._ask(Diagnose(v, y, order))
+
+    def _ask(self, request: Any) -> Any:
         if self.in_flight:
             raise RuntimeError(f"{self.in_flight} solves in flight: take their outcomes first")
         try:
-            self._connection.send(DOCUMENT)
+            self._connection.send(request)
             return self._connection.recv()
         except (EOFError, OSError) as error:
             raise RuntimeError(self._exited()) from error
