@@ -83,6 +83,25 @@ def test_diagnose_replies_with_the_diagnosis_json_and_publishes_it(rig):
     assert rig.observer.diagnostics[-1]["diagnosis"] != rig.observer.diagnostics[-1]["solver"]
 
 
+def test_a_lost_diagnosis_process_is_reported_and_the_node_diagnoses_on(rig):
+    """When the diagnosis process is killed, the next diagnosis runs in the node's thread (the
+    same answer) and /diagnostics says why."""
+    import os
+    import signal
+
+    diagnosis = rig.observer.diagnostics[-1]["diagnosis"]
+    assert diagnosis.startswith("process "), diagnosis
+    os.kill(int(diagnosis.split()[1]), signal.SIGKILL)
+    ok, message = call(rig, "diagnose")
+    assert ok, message
+    assert json.loads(message)["cause"] == "none"
+    call(rig, "solve")  # publishes /diagnostics
+    rig.wait_for(lambda: rig.observer.diagnostics[-1]["diagnosis"].startswith("thread (the diagnosis process exited "
+                                                                               "(exit code -9))"),
+                 what="/diagnostics reporting the lost diagnosis process")
+    assert rig.process.process.poll() is None
+
+
 def test_solve_and_diagnose_refuse_a_window_that_is_not_exciting(rig):
     rig.plant.send(WINDOW, constant=0.2)  # standing still for a whole window
     _, message = call_until(rig, "solve", lambda ok, m: not ok and "not persistently exciting" in m,

@@ -624,7 +624,7 @@ class IdentificationCore:
         if self.values["solver_process"] and not self.diagnoser_lost:
             try:
                 if self.diagnoser is None:
-                    self.diagnoser = SolverProcess()
+                    self.diagnoser = SolverProcess(role="diagnosis")
                 return self.diagnoser.diagnose(v, y, order)
             except RuntimeError as exc:
                 self.get_logger().error(f"diagnosis process lost ({exc}); diagnosing in the node's thread from now on")

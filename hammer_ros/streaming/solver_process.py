@@ -124,12 +124,14 @@ class SolverProcess:
     ``batch``: snapshots sent together (one transfer, one wake-up of the worker; ``result`` sends
     a partial batch before it waits). ``documents=False``: ok outcomes come without ``doc`` and
     ``markov`` (``solve_snapshot(..., document=False)``: for an owner that writes no outputs and
-    reads the last model's document only, ``document``)."""
+    reads the last model's document only, ``document``). ``diagnose``: a window's diagnosis there.
+    ``role`` names the process (``hammer_ros_<role>``) and its exit in the errors."""
 
-    def __init__(self, start_method: str = "spawn", batch: int = 1, documents: bool = True) -> None:
+    def __init__(self, start_method: str = "spawn", batch: int = 1, documents: bool = True,
+                 role: str = "solver") -> None:
         context = multiprocessing.get_context(start_method)
         self._connection, child = context.Pipe()
-        self._process = context.Process(target=_serve, args=(child, documents), name="hammer_ros_solver",
+        self._process = context.Process(target=_serve, args=(child, documents), name=f"hammer_ros_{role}",
                                         daemon=True)
         self._process.start()
         child.close()
@@ -151,7 +153,8 @@ class SolverProcess:
 
     def _exited(self) -> str:
         self._process.join(CLOSE_TIMEOUT)
-        return f"the solver process exited (exit code {self._process.exitcode})"
+        role = self._process.name.removeprefix("hammer_ros_")
+        return f"the {role} process exited (exit code {self._process.exitcode})"
 
     def submit(self, snapshot: EngineSnapshot) -> None:
         """Queue ``snapshot`` for the worker (its in-process ``published`` model stays here); a full
