@@ -841,7 +841,7 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
         ("case", "W"), ("ingest", "engine ingest peak MiB"), ("solve", "engine solve peak MiB"),
         ("reference", "raw window (v, y float64) MiB"), ("ratio", "engine ingest / raw window"),
         ("solve_seconds", "engine solve s"), ("node_idle", "node idle RSS MiB"), ("node_peak", "node peak RSS MiB"),
-        ("node_added", "node peak - idle MiB")])
+        ("node_added", "node peak - idle MiB"), ("workers_peak", "node's worker processes: peak RSS MiB (sum)")])
     node_memory = None
     if node:
         try:
@@ -872,6 +872,7 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
             else:
                 row.update(node_idle=live["idle_kib"] / 1024, node_peak=live["peak_kib"] / 1024,
                            node_added=(live["peak_kib"] - live["idle_kib"]) / 1024,
+                           workers_peak=live["workers_peak_kib"] / 1024,
                            node_complete=live["filled"] and live["solved"])
                 if not row["node_complete"]:
                     row["node_added"] = f"{row['node_added']:.3g} (window not filled and solved)"
@@ -882,7 +883,10 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
         section.notes.append("node: VmRSS of a fresh `hammer-ros node` (window W, cls-markov, 1 solve/s, a diagnosis "
                              "every 2 s of its newest `diagnosis_window` = 10,000 samples) after startup, and its "
                              "VmHWM once 1.2 W samples of G1 / tanh data (Float64MultiArray of 1000 samples, 200 "
-                             "messages/s per topic) filled the window and it solved twice and diagnosed once more")
+                             "messages/s per topic) filled the window and it solved twice and diagnosed once more; its "
+                             "worker processes (the solver, the diagnosis, multiprocessing's resource tracker): the "
+                             "sum of their VmHWM at that point (each counts the shared library pages it maps, so the "
+                             "sum overstates what they add)")
     return section
 
 

@@ -11,3 +11,14 @@ def process_status_kib(field_name: str, pid: int | str = "self") -> int:
         if line.startswith(field_name + ":"):
             return int(line.split()[1])
     raise RuntimeError(f"/proc/{pid}/status has no {field_name}")
+
+
+def child_pids(pid: int | str = "self") -> list[int]:
+    """The pids of a process's children (/proc/<pid>/task/*/children; Linux)."""
+    pids: list[int] = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            pids += [int(child) for child in (task / "children").read_text().split()]
+        except OSError:  # the thread ended meanwhile
+            continue
+    return pids

@@ -263,7 +263,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         from std_msgs.msg import String
 
         from ..ros.node import PARAMETERS
-        from .process_status import process_status_kib
+        from .process_status import child_pids, process_status_kib
 
         context = rclpy.Context()  # its own context and no signal handlers: callable from any process
         rclpy.init(context=context, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
@@ -293,6 +293,12 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             done = _spin_until(executor, lambda: attempts() >= solves + 2 and max(diagnoses, default=0) >= diagnosed,
                                120)
             peak = process_status_kib("VmHWM", ident.pid)
+            workers = 0
+            for child in child_pids(ident.pid):  # its solver and diagnosis processes (and multiprocessing's tracker)
+                try:
+                    workers += process_status_kib("VmHWM", child)
+                except (RuntimeError, OSError):  # gone meanwhile
+                    continue
             _finish(publisher)
         finally:
             ident.terminate()
@@ -300,7 +306,8 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             executor.shutdown()
             node.destroy_node()
             rclpy.try_shutdown(context=context)
-    return {"window": window, "idle_kib": idle, "peak_kib": peak, "filled": full(), "solved": done,
+    return {"window": window, "idle_kib": idle, "peak_kib": peak, "workers_peak_kib": workers, "filled": full(),
+            "solved": done,
             "window_samples": int(latest.get("window_samples", 0)),
             "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
 
