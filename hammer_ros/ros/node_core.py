@@ -125,7 +125,8 @@ PARAMETERS: dict[str, Spec] = {
                            "neither holds the interpreter lock against ingestion; false = in the node's threads",
                            read_only=True),
     "diagnosis_period": Spec(30.0, "float", "seconds between diagnoses of the window published on ~/diagnosis "
-                             "(hammer_ros.diagnosis, in its own thread); 0 = off", 0.0, 86400.0),
+                             "(hammer_ros.diagnosis, in the diagnosis process: see solver_process); 0 = off",
+                             0.0, 86400.0),
     "diagnosis_window": Spec(10_000, "int", "the newest samples of the window that a diagnosis uses (its cost "
                              "grows faster than linearly: ~2 s for 10^4 samples)", 100, MAX_WINDOW),
     "frame_id": Spec("", "str", "frame_id of the stamped result messages"),
