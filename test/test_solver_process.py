@@ -53,6 +53,26 @@ def test_a_sequence_of_solves_equals_the_in_process_one(solver):
     assert here.stats.solves == there.stats.solves > 10
 
 
+def _solve_beside(process: SolverProcess, t: np.ndarray, v: np.ndarray, y: np.ndarray,
+                  kept: list[int] | None = None) -> tuple[list, StreamingEngine]:
+    """Feed the record in parts of 500 samples to two engines: solve one in process after each part,
+    submit the other's snapshot to ``process`` (``kept``: collects how much of each window the worker
+    already held). Returns the in-process outcomes and that engine."""
+    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
+    expected = []
+    for start in range(0, v.size, 500):
+        part = slice(start, start + 500)
+        for engine in (here, there):
+            engine.add_excitation(t[part], v[part])
+            engine.add_response(t[part], y[part])
+        expected.append(here.solve())
+        snapshot = there.snapshot()
+        if kept is not None:
+            kept.append(process._kept(snapshot))
+        process.submit(snapshot)
+    return expected, here
+
+
 def test_batches_of_slid_windows_give_the_in_process_outcomes():
     """Snapshots submitted in batches of 3 with at most 2 batches unanswered (replay's pipeline),
     their windows sent as the samples new since the last snapshot: the outcomes are those of the
@@ -60,19 +80,10 @@ def test_batches_of_slid_windows_give_the_in_process_outcomes():
     v, y = hammerstein_record(16_000, seed=5)
     t = np.arange(v.size) / 1000.0
     t[9000:] += 5.0  # a 5 s gap in both streams: the window restarts empty after it
-    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
-    expected, kept = [], []
+    kept = []
     with SolverProcess("fork", batch=3) as process:
         process.max_sent = 6
-        for start in range(0, v.size, 500):
-            part = slice(start, start + 500)
-            for engine in (here, there):
-                engine.add_excitation(t[part], v[part])
-                engine.add_response(t[part], y[part])
-            expected.append(here.solve())
-            snapshot = there.snapshot()
-            kept.append(process._kept(snapshot))
-            process.submit(snapshot)
+        expected, here = _solve_beside(process, t, v, y, kept)
         outcomes = [process.result() for _ in expected]
     assert here.stats.gaps == 1 and kept.count(0) >= 2 and max(kept) == CONFIG.window - 500
     for local, remote in zip(expected, outcomes, strict=True):
@@ -87,17 +98,9 @@ def test_without_documents_the_outcomes_are_the_in_process_ones_and_the_last_goo
     last ok outcome's doc and markov exactly as the in-process solve made them."""
     v, y = hammerstein_record(12_000, seed=7)
     t = np.arange(v.size) / 1000.0
-    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
-    expected = []
     with SolverProcess("fork", batch=4, documents=False) as process:
         assert process.document() is None  # no model yet
-        for start in range(0, v.size, 500):
-            part = slice(start, start + 500)
-            for engine in (here, there):
-                engine.add_excitation(t[part], v[part])
-                engine.add_response(t[part], y[part])
-            expected.append(here.solve())
-            process.submit(there.snapshot())
+        expected, _ = _solve_beside(process, t, v, y)
         with pytest.raises(RuntimeError, match="in flight"):
             process.document()
         outcomes = [process.result() for _ in expected]

@@ -192,7 +192,9 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
         solve(bag_time, final=True)  # the final model, also after a signal
         if solver is not None and last_ok is not None and last_ok.doc is None:  # solved without documents
-            last_ok, last = (documented := solver.document()), documented if last is last_ok else last
+            documented = solver.document()
+            last = documented if last is last_ok else last
+            last_ok = documented
         if progress:
             progress(done, engine.stats.aligned, engine.stats.solves, True)
         complete = True
