@@ -142,11 +142,14 @@ def test_a_publisher_of_the_wrong_type_is_reported(rig, tmp_path):
 
 
 def test_a_publisher_that_dies_and_comes_back(rig):
+    """The node goes on without input, says that no publisher is matched, and takes the
+    publisher back (one gap)."""
     before = rig.observer.settle(rig.plant.last)
+    assert (before["excitation_publishers"], before["response_publishers"]) == ("1", "1")
     rig.plant.destroy_publishers()
-    rig.observer.next_solve()
-    rig.observer.next_solve()  # the node goes on without input
+    rig.wait_for(lambda: rig.observer.next_solve()["excitation_publishers"] == "0", what="no matched publisher")
     rig.plant.create_publishers()
+    rig.wait_for(lambda: rig.observer.next_solve()["response_publishers"] == "1", what="the publisher matched again")
     rig.plant.k += int(3 * RATE)  # it was gone for 3 s of its clock
     identifies(rig)
     assert delta(rig.observer.settle(rig.plant.last), before, "gaps") == [1]

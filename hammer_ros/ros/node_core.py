@@ -44,7 +44,7 @@ from rcl_interfaces.msg import (  # noqa: E402
     SetParametersResult,
 )
 from rclpy.event_handler import SubscriptionEventCallbacks  # noqa: E402
-from rclpy.exceptions import ParameterException, ParameterUninitializedException  # noqa: E402
+from rclpy.exceptions import InvalidHandle, ParameterException, ParameterUninitializedException  # noqa: E402
 from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
@@ -247,6 +247,15 @@ class _Input:
         self.queue_dropped = 0  # messages dropped because the queue to the engine was full (max_pending)
         self.dds_lost = 0  # messages the middleware reports lost before the callback (message-lost event)
         self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
+
+    def publishers(self) -> int:
+        """Publishers matched with the subscription (0 when unsubscribed): the middleware delivers
+        only their messages, so 0 while a publisher is still being discovered or has a QoS that
+        cannot match."""
+        try:
+            return self.subscription.get_publisher_count() if self.subscription is not None else 0
+        except InvalidHandle:  # destroyed meanwhile (deactivate): none
+            return 0
 
 
 class IdentificationCore:
@@ -752,6 +761,8 @@ class IdentificationCore:
             "response_queue_dropped": self.inputs["response"].queue_dropped,
             "excitation_dds_lost": self.inputs["excitation"].dds_lost,
             "response_dds_lost": self.inputs["response"].dds_lost,
+            "excitation_publishers": self.inputs["excitation"].publishers(),
+            "response_publishers": self.inputs["response"].publishers(),
             "loop_errors": self.loop_errors,
             "solver": (f"process {self.solver.pid}" if self.solver is not None
                        else "thread" + (f" ({self.solver_lost})" if self.solver_lost else "")),

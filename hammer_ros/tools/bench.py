@@ -370,8 +370,9 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                              "goal": None if ratio is None or foxglove_ratio is None
                              else ratio >= 0.9 and foxglove_ratio >= 0.9})
     section.notes.append("`ros_rate_probe`: one publisher process sends both topics (reliable, depth 1000) for the "
-                         "stated time, to the bare subscriber (EventsExecutor, counting) and to a fresh "
-                         "`hammer-ros node` (window 4000, cls-markov, 4 solves/s; its /diagnostics counters), and "
+                         "stated time, from the moment both ends have matched both topics, to the bare subscriber "
+                         "(EventsExecutor, counting) and to a fresh `hammer-ros node` (window 4000, cls-markov, "
+                         "4 solves/s; its /diagnostics counters), and "
                          "to one more with its Foxglove server on (`foxglove_port`) and one WebSocket client "
                          "subscribed to every channel (goal: >= 0.9 of the node's rate, i.e. at most 10 % lower); "
                          "a rate counts when the publisher kept >= 95 % of it and every sample arrived. The ladder "

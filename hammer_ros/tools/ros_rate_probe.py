@@ -7,7 +7,9 @@ For each rate R a publisher process sends R messages/s on each of /command and /
 (std_msgs/Float64, or Float64MultiArray of ``--batch`` samples; reliable, depth 1000) for
 ``--seconds`` seconds, once to a bare subscriber (this process, with the node's QoS: best
 effort, the node's default ``qos_depth``) and once to a fresh
-``hammer-ros node`` (whose /diagnostics counters are read back). A rate is sustained when every
+``hammer-ros node`` (whose /diagnostics counters are read back). The publisher starts once both
+ends have matched (the bare subscriber's matched-publisher counts, the node's
+``*_publishers`` on /diagnostics), not after a fixed wait. A rate is sustained when every
 published sample was received. Output: one JSON document per line on stdout. Reusable by
 ``hammer-ros bench`` through :func:`probe`.
 """
@@ -20,6 +22,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -50,8 +53,9 @@ def _plant_messages(batch: int) -> list[tuple]:
 
 
 def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
-    """Publisher process: wait for a subscriber on both topics, publish, print the count sent.
-    The same message every time, or (``plant``) a Hammerstein record cycled."""
+    """Publisher process: wait for a subscriber on both topics, say so (a line on stdout), wait for
+    the go (a line on stdin: ``_start_when_subscribed``), publish, print the count sent. The same
+    message every time, or (``plant``) a Hammerstein record cycled."""
     import rclpy
     from std_msgs.msg import Float64, Float64MultiArray
 
@@ -62,7 +66,8 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     deadline = time.monotonic() + MATCH_TIMEOUT
     while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < deadline:
         time.sleep(0.01)
-    time.sleep(0.5)  # let the subscriber finish matching both topics
+    print(json.dumps({"matched": True}), flush=True)
+    sys.stdin.readline()  # the subscriber has matched both writers too
     values = [float(i % 97) / 97.0 for i in range(batch)]
     message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
     pairs = _plant_messages(batch) if plant else [(message, message)]
@@ -87,7 +92,19 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
 def _start_publisher(env: dict, rate: float, seconds: float, batch: int, plant: bool = False) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "hammer_ros.tools.ros_rate_probe", "--publish", "--rates", str(rate),
            "--seconds", str(seconds), "--batch", str(batch), *(["--plant"] if plant else [])]
-    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, text=True)
+    return subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+
+def _start_when_subscribed(publisher: subprocess.Popen, executor, subscribed: Callable[[], bool]) -> None:
+    """Let ``publisher`` start once both ends are matched: it has matched the subscriber's readers
+    when it says so (its first line), the subscriber has matched its writers when ``subscribed()``
+    (the subscriber's own discovery, which can lag on a loaded machine; the middleware drops a
+    message sent to a reader that has not matched the writer yet, which would count as lost)."""
+    if not publisher.stdout.readline():  # exited without matching: ``_finish`` reports it
+        return
+    _spin_until(executor, subscribed, MATCH_TIMEOUT)
+    publisher.stdin.write("go\n")
+    publisher.stdin.flush()
 
 
 def _finish(publisher: subprocess.Popen) -> dict:
@@ -112,6 +129,7 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
             for topic in TOPICS]
     never = Future()  # spin_until_future_complete on it: the executor's own event loop, as the node runs it
     publisher = _start_publisher(env, rate, seconds, batch)
+    _start_when_subscribed(publisher, executor, lambda: all(sub.get_publisher_count() for sub in subs))
     while publisher.poll() is None:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
     settle = time.monotonic() + SETTLE_SECONDS
@@ -135,6 +153,11 @@ def _diagnostics_counters(node):
                 latest.update({kv.key: kv.value for kv in status.values})
 
     return latest, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+
+
+def _node_subscribed(latest: dict[str, str]) -> bool:
+    """The node's latest /diagnostics has a matched publisher on both inputs."""
+    return all(int(latest.get(f"{stream}_publishers", 0)) > 0 for stream in ("excitation", "response"))
 
 
 def _start_node(env: dict, params: list[str], batch: int) -> subprocess.Popen:
@@ -227,6 +250,7 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
             client = _FoxgloveClient(port)
             _spin_until(executor, lambda: client.messages > 0, MATCH_TIMEOUT)  # connected and receiving
         publisher = _start_publisher(env, rate, seconds, batch)
+        _start_when_subscribed(publisher, executor, lambda: _node_subscribed(latest))
         _spin_until(executor, lambda: publisher.poll() is not None, 120)
         sent = _finish(publisher)
         expected = sent["messages"] * batch
@@ -283,6 +307,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             idle = process_status_kib("VmRSS", ident.pid)
             seconds = 1.2 * window / (rate * batch) + 1.0
             publisher = _start_publisher(env, rate, seconds, batch, plant=True)
+            _start_when_subscribed(publisher, executor, lambda: _node_subscribed(latest))
             full = lambda: int(latest.get("window_samples", 0)) >= window  # noqa: E731
             _spin_until(executor, lambda: full() or publisher.poll() is not None, seconds + MATCH_TIMEOUT)
             def attempts() -> int:
