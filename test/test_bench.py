@@ -125,3 +125,31 @@ def test_a_node_that_refuses_a_rate_is_reported_not_measured():
     best, first_loss, tried = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
     assert best["node"] == 5000.0 and 6000.0 < first_loss["node"] <= 8500.0
     assert any("node exited 2: sample_rate: out of range" in line for line in tried)
+
+
+def test_a_loss_while_the_publisher_stalled_is_measured_again():
+    """``_losses`` runs a subscriber again when it lost samples in a run in which the publisher
+    stalled, at most STALL_RETRIES times; a stalled run without loss, or a loss without a stall,
+    is taken as it is."""
+    names = {"node": "hammer_ros node", "bare": "bare rclpy", "foxglove": "hammer_ros node + foxglove client"}
+    script = {  # per subscriber, the (stalled_seconds, lost) of its successive runs
+        "node": [(0.3, 900), (0.0, 0)],  # a burst after a stall, then a clean run: lossless
+        "bare": [(0.2, 0)],  # stalled but nothing lost: no rerun
+        "foxglove": [(0.3, 50), (0.25, 40), (0.3, 30), (0.0, 0)],  # stalls every time: the last of 3 runs counts
+    }
+    calls = []
+
+    def probe(rates, batch, seconds, subscribers):
+        calls.append(subscribers)
+        rows = []
+        for who in subscribers:
+            stalled, lost = script[who].pop(0)
+            rows.append({"subscriber": names[who], "messages": rates[0] * seconds,
+                         "publish_seconds": seconds + stalled, "stalled_seconds": stalled, "lost": lost})
+        return rows
+
+    tried: list[str] = []
+    lost = bench._losses(probe, 7000.0, 1, 1.0, ("node", "bare", "foxglove"), tried)
+    assert lost == {"node": 0, "bare": 0, "foxglove": 30}
+    assert calls == [("node", "bare", "foxglove"), ("node", "foxglove"), ("foxglove",)]
+    assert tried == ["7000: 0 (1 rerun) / 0 / 30 (2 rerun)"]
