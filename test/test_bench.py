@@ -145,7 +145,8 @@ def test_a_loss_while_the_publisher_stalled_is_measured_again():
         for who in subscribers:
             stalled, lost = script[who].pop(0)
             rows.append({"subscriber": names[who], "messages": rates[0] * seconds,
-                         "publish_seconds": seconds + stalled, "stalled_seconds": stalled, "lost": lost})
+                         "publish_seconds": seconds + stalled, "stalled_seconds": stalled, "stalls": int(stalled > 0),
+                         "lost": lost})
         return rows
 
     tried: list[str] = []
@@ -153,3 +154,17 @@ def test_a_loss_while_the_publisher_stalled_is_measured_again():
     assert lost == {"node": 0, "bare": 0, "foxglove": 30}
     assert calls == [("node", "bare", "foxglove"), ("node", "foxglove"), ("foxglove",)]
     assert tried == ["7000: 0 (1 rerun) / 0 / 30 (2 rerun)"]
+
+
+def test_a_publisher_that_cannot_keep_the_rate_is_not_a_measurement():
+    """A publisher that falls behind again and again (more than MAX_STALLS stalls) did not keep the
+    rate: its plain average counts, the rate is not a lossless one, and nothing is rerun."""
+    calls = []
+
+    def probe(rates, batch, seconds, subscribers):
+        calls.append(subscribers)
+        return [{"subscriber": "bare rclpy", "messages": rates[0] * seconds, "publish_seconds": 2 * seconds,
+                 "stalled_seconds": seconds, "stalls": 50, "lost": 500}]
+
+    lost = bench._losses(probe, 100_000.0, 1, 1.0, ("bare",), [])
+    assert lost == {"bare": "publisher 50000/s"} and calls == [("bare",)]

@@ -283,6 +283,7 @@ LADDER_CAP = 200_000.0  # msg/s; no publisher here gets near it
 REFINE_STEPS = 2  # rates tried between a subscriber's last lossless rate and its first lossy one
 REFINE_RATIO = 1.08  # ... while the two are further apart than this
 STALL_RETRIES = 2  # reruns of a subscriber that lost samples while the publisher stalled (``_losses``)
+MAX_STALLS = 3  # more stalls in one run: the publisher cannot keep the rate (its average counts, stalls included)
 SUBSCRIBER_KEYS = {"hammer_ros node": "node", "hammer_ros node + foxglove client": "foxglove"}  # else "bare"
 
 
@@ -303,7 +304,8 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
     a line for the table goes to ``tried``. A subscriber that lost samples in a run in which the
     publisher stalled (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule)
     is run again, up to STALL_RETRIES times: the stall is the instrument's failure, and the
-    figure is the last run's."""
+    figure is the last run's. The rate the publisher kept leaves out the time of up to MAX_STALLS
+    stalls; with more, the publisher could not keep the rate, and its plain average counts."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
     running = tuple(subscribers)
@@ -313,14 +315,14 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
         again = []
         for row in results:
             who = SUBSCRIBER_KEYS.get(row["subscriber"], "bare")
-            stalled = row.get("stalled_seconds", 0.0)
+            stalled = row.get("stalled_seconds", 0.0) if row.get("stalls", 0) <= MAX_STALLS else 0.0
             achieved = row["messages"] / max(row["publish_seconds"] - stalled, 1e-9)
             lost[who] = row["lost"] if achieved >= 0.95 * rate else f"publisher {achieved:.0f}/s"
             if "error" in row:  # the node did not run at this rate
                 lost[who] = row["error"]
             if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement
                 lost[who] = "no Foxglove message"
-            if stalled > 0 and lost[who] != 0 and reruns.get(who, 0) < STALL_RETRIES:
+            if stalled > 0 and isinstance(lost[who], int) and lost[who] > 0 and reruns.get(who, 0) < STALL_RETRIES:
                 reruns[who] = reruns.get(who, 0) + 1
                 again.append(who)
         running = tuple(again)
@@ -396,7 +398,8 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                          "publisher sends each message in its slot; when it falls more than 20 ms behind (descheduled) "
                          "it resumes on a new schedule instead of sending the backlog in one burst, and a subscriber "
                          f"that lost samples in such a run is run again (up to {STALL_RETRIES} times; 'rerun' in "
-                         "the table). The ladder "
+                         f"the table); the rate kept leaves out up to {MAX_STALLS} stalls (more: the publisher could "
+                         "not keep the rate). The ladder "
                          f"climbs past the plan's rates (x{LADDER_STEP:g} a step) until the bare subscriber loses "
                          "samples or the publisher cannot keep the rate (a subscriber is not run again above its "
                          f"first loss); then up to {REFINE_STEPS} rates between each subscriber's last lossless "
