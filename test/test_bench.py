@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from hammer_ros.identification.correlation import cross_correlation, weighted_cross_correlation
 from hammer_ros.tools import bench
@@ -168,3 +169,25 @@ def test_a_publisher_that_cannot_keep_the_rate_is_not_a_measurement():
 
     lost = bench._losses(probe, 100_000.0, 1, 1.0, ("bare",), [])
     assert lost == {"bare": "publisher 50000/s"} and calls == [("bare",)]
+
+
+def test_the_publisher_resumes_after_a_stall_without_a_burst():
+    """``ros_rate_probe.Schedule``: on time, the messages due follow the rate; after a 0.3 s stall
+    at 7000/s the next call releases at most one message (not the 2000 missed), counts the stall
+    and its time, and the slots go on from there; the total caps what is due."""
+    from hammer_ros.tools.ros_rate_probe import MAX_LAG, Schedule
+
+    schedule = Schedule(7000.0, 14_000, now=100.0)
+    assert schedule.due(100.0) == 1
+    schedule.sent = 1
+    assert schedule.due(100.001) == 8  # 1 ms later: 7 more
+    schedule.sent = 8
+    assert schedule.due(100.0115) == 81 and schedule.stalls == 0  # 10.4 ms behind: within MAX_LAG, caught up
+    schedule.sent = 81
+    assert schedule.due(100.3) - 81 <= 1  # 0.29 s behind: the schedule restarts, no burst
+    assert schedule.stalls == 1 and schedule.stalled == pytest.approx(0.3 - 81 / 7000.0)
+    assert schedule.slot(81) == pytest.approx(100.3)
+    schedule.sent = 82
+    assert schedule.due(100.3105) == 155 and schedule.stalls == 1  # 10.5 ms later: at the rate again
+    schedule.sent = 13_999
+    assert schedule.due(schedule.slot(13_999) + MAX_LAG / 2) == 14_000 and schedule.stalls == 1

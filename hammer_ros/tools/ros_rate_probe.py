@@ -53,6 +53,30 @@ def _plant_messages(batch: int) -> list[tuple]:
     return pairs
 
 
+class Schedule:
+    """The publisher's message slots: message k is due at start + k / rate. ``due(now)`` is how many
+    messages should have gone out by ``now`` (at most ``total``); when the next one is more than
+    MAX_LAG late (the publisher was descheduled), the schedule restarts at ``now`` instead, so the
+    messages missed are never sent in one burst, and the stall is counted (``stalls``, its time in
+    ``stalled``)."""
+
+    def __init__(self, rate: float, total: int, now: float) -> None:
+        self.rate, self.total = rate, total
+        self.began = self.start = now
+        self.sent, self.stalled, self.stalls = 0, 0.0, 0
+
+    def slot(self, k: int) -> float:
+        return self.start + k / self.rate
+
+    def due(self, now: float) -> int:
+        behind = now - self.slot(self.sent)
+        if behind > MAX_LAG:
+            self.start += behind
+            self.stalled += behind
+            self.stalls += 1
+        return min(self.total, int((now - self.start) * self.rate) + 1)
+
+
 def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
     """Publisher process: wait for a subscriber on both topics, say so (a line on stdout), wait for
     the go (a line on stdin: ``_start_when_subscribed``), publish, print the count sent. The same
@@ -80,24 +104,16 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     values = [float(i % 97) / 97.0 for i in range(batch)]
     message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
     pairs = _plant_messages(batch) if plant else [(message, message)]
-    total = int(rate * seconds)
-    began = start = time.monotonic()  # start: of the schedule, moved by each stall
-    sent, stalled, stalls = 0, 0.0, 0
-    while sent < total:
-        behind = time.monotonic() - (start + sent / rate)  # how late the next message is
-        if behind > MAX_LAG:
-            start += behind
-            stalled += behind
-            stalls += 1
-        due = min(total, int((time.monotonic() - start) * rate) + 1)
-        while sent < due:
-            for pub, msg in zip(pubs, pairs[sent % len(pairs)]):
+    schedule = Schedule(rate, int(rate * seconds), time.monotonic())
+    while (due := schedule.due(time.monotonic())) > schedule.sent:
+        for k in range(schedule.sent, due):
+            for pub, msg in zip(pubs, pairs[k % len(pairs)]):
                 pub.publish(msg)
-            sent += 1
-        time.sleep(max(0.0, start + sent / rate - time.monotonic()))
-    elapsed = time.monotonic() - began
-    print(json.dumps({"messages": sent, "publish_seconds": elapsed, "stalled_seconds": stalled, "stalls": stalls}),
-          flush=True)
+        schedule.sent = due
+        time.sleep(max(0.0, schedule.slot(due) - time.monotonic()))
+    elapsed = time.monotonic() - schedule.began
+    print(json.dumps({"messages": schedule.sent, "publish_seconds": elapsed, "stalled_seconds": schedule.stalled,
+                      "stalls": schedule.stalls}), flush=True)
     time.sleep(0.5)
     node.destroy_node()
     rclpy.try_shutdown()
