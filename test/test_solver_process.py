@@ -33,14 +33,8 @@ def solver():
 
 def test_a_sequence_of_solves_equals_the_in_process_one(solver):
     v, y = hammerstein_record(12_000, seed=3)
-    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
-    t = np.arange(v.size) / 1000.0
     statuses = []
-    for start in range(0, v.size, 400):
-        part = slice(start, start + 400)
-        for engine in (here, there):
-            engine.add_excitation(t[part], v[part])
-            engine.add_response(t[part], y[part])
+    for here, there in _fed_in_parts(np.arange(v.size) / 1000.0, v, y, 400):
         local = here.solve()
         remote = solver.solve(there.snapshot())
         there.record(remote)
@@ -53,18 +47,24 @@ def test_a_sequence_of_solves_equals_the_in_process_one(solver):
     assert here.stats.solves == there.stats.solves > 10
 
 
+def _fed_in_parts(t: np.ndarray, v: np.ndarray, y: np.ndarray, size: int):
+    """Two engines fed the record in parts of ``size`` samples: yields (here, there) after each part."""
+    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
+    for start in range(0, v.size, size):
+        part = slice(start, start + size)
+        for engine in (here, there):
+            engine.add_excitation(t[part], v[part])
+            engine.add_response(t[part], y[part])
+        yield here, there
+
+
 def _solve_beside(process: SolverProcess, t: np.ndarray, v: np.ndarray, y: np.ndarray,
                   kept: list[int] | None = None) -> tuple[list, StreamingEngine]:
     """Feed the record in parts of 500 samples to two engines: solve one in process after each part,
     submit the other's snapshot to ``process`` (``kept``: collects how much of each window the worker
     already held). Returns the in-process outcomes and that engine."""
-    here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)
     expected = []
-    for start in range(0, v.size, 500):
-        part = slice(start, start + 500)
-        for engine in (here, there):
-            engine.add_excitation(t[part], v[part])
-            engine.add_response(t[part], y[part])
+    for here, there in _fed_in_parts(t, v, y, 500):
         expected.append(here.solve())
         snapshot = there.snapshot()
         if kept is not None:

@@ -79,16 +79,10 @@ class Schedule:
 
 def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
     """Publisher process: wait for a subscriber on both topics, say so (a line on stdout), wait for
-    the go (a line on stdin: ``_start_when_subscribed``), publish, print the count sent. The same
-    message every time, or (``plant``) a Hammerstein record cycled.
-
-    Each message has its slot at ``rate``; a publisher that finds itself more than MAX_LAG behind
-    its schedule (it was descheduled: the machine has 2 cores for it, the subscriber and the
-    node's workers) resumes on a new schedule instead of sending the missed messages in one
-    burst, and reports the time lost (``stalled_seconds``) and how often (``stalls``; a publisher
-    that cannot keep the rate at all falls behind again and again): a catch-up burst of a 0.3 s stall is
-    2000 messages per topic at 7000/s, more than a subscriber's history holds, which is a loss
-    of the publisher's making, not the subscriber's."""
+    the go (a line on stdin: ``_start_when_subscribed``), publish on a ``Schedule``, print the count
+    sent and the stalls. The same message every time, or (``plant``) a Hammerstein record cycled.
+    Without the schedule's restart, a 0.3 s stall at 7000/s was a catch-up burst of about 2000
+    messages per topic, more than a subscriber's history holds: a loss of the publisher's making."""
     import rclpy
     from std_msgs.msg import Float64, Float64MultiArray
 
