@@ -40,6 +40,7 @@ def test_bench_sections_run_on_tiny_sizes():
     replay = sections["replay"].rows
     assert len(replay) == 2 * len(bench.REPLAY_MODES)
     assert all(r["replay"] > 0 and r["reference"] > 0 for r in replay)
+    assert all(r["cpu_s"]["reading"] > 0 and r["cpu_s"]["solver"] >= 0 and r["cpu_s"]["bare"] > 0 for r in replay)
     solve = sections["solve"].rows
     assert {r["method"] for r in solve} >= {"cls-arx", "cls-markov", "plls-hammerstein", "plls-feedback",
                                              "plls-hammerstein-feedback", "diagnose"}
@@ -79,6 +80,17 @@ def test_fleet_section_runs_on_tiny_sizes():
     assert row["plain"] > 0
     assert "8 bags" in row["case"]
     assert any(g["goal"].startswith("fleet") for g in bench.goals({"fleet": section}).rows)
+
+
+def test_replay_reports_the_cpu_of_its_solver_process(tmp_path):
+    """``run_replay`` of a bag whose 399 periodic solves go to a forked solver process: the
+    worker's CPU (a child, counted once waited for) is reported beside the reading process's, and
+    it is at least what 399 CLS solves cost (more than 0.1 ms each)."""
+    path = tmp_path / "bench_100.mcap"
+    bench.write_bench_bag(path, 2000, 100)
+    _, doc = bench.run_replay(path, 100, 4000)
+    assert doc["solves"] + doc.get("solve_errors", 0) >= 390, doc
+    assert doc["cpu_s"]["solver"] > 399 * 1e-4 and doc["cpu_s"]["reading"] > 0, doc["cpu_s"]
 
 
 def test_the_rate_ladder_brackets_each_limit_and_narrows_it():
@@ -169,6 +181,46 @@ def test_a_publisher_that_cannot_keep_the_rate_is_not_a_measurement():
 
     lost = bench._losses(probe, 100_000.0, 1, 1.0, ("bare",), [])
     assert lost == {"bare": "publisher 50000/s"} and calls == [("bare",)]
+
+
+def test_the_cpu_of_each_run_is_kept_per_subscriber_and_rate():
+    """``_losses`` hands each run's CPU to the caller: the subscriber's microseconds per message
+    received on the two topics and the cores it and the publisher kept busy; a row without the
+    readings (no /proc) gives none, and the node's rerun replaces its first run's figures."""
+    rows = {"node": [(0.3, 900, 1.40), (0.0, 0, 0.84)], "bare": [(0.0, 0, None)]}
+    names = {"node": "hammer_ros node", "bare": "bare rclpy"}
+
+    def probe(rates, batch, seconds, subscribers):
+        out = []
+        for who in subscribers:
+            stalled, lost, cpu = rows[who].pop(0)
+            out.append({"subscriber": names[who], "messages": 7000, "publish_seconds": 2.0 + stalled,
+                        "stalled_seconds": stalled, "stalls": int(stalled > 0), "lost": lost,
+                        "subscriber_cpu_seconds": cpu, "publisher_cpu_seconds": 0.5})
+        return out
+
+    cpu: dict = {}
+    assert bench._losses(probe, 3500.0, 1, 2.0, ("node", "bare"), [], cpu) == {"node": 0, "bare": 0}
+    node = cpu[("node", 3500.0)]
+    assert node["us_per_message"] == pytest.approx(1e6 * 0.84 / 14_000)  # 60 us
+    assert node["subscriber_cores"] == pytest.approx(0.42) and node["publisher_cores"] == pytest.approx(0.25)
+    assert cpu[("bare", 3500.0)] == {}
+    assert bench._cpu_cell(node) == "60 us, 0.42 + 0.25" and bench._cpu_cell({}) == "-"
+
+
+def test_the_rate_probe_runs_both_subscribers_and_reads_their_cpu():
+    """A real ``ros_rate_probe`` run at 300 Float64 messages/s for 1 s (publisher, node and bare
+    subscriber over DDS on a private domain): every row has the messages sent and received and
+    CPU seconds of the subscriber's process and of the publisher that are positive and no more
+    than two cores' worth of the run (the node's read from /proc, the bare one's in process)."""
+    from hammer_ros.tools.ros_rate_probe import probe
+
+    rows = probe([300.0], batch=1, seconds=1.0, subscribers=("bare", "node"))
+    assert [row["subscriber"] for row in rows] == ["bare rclpy (EventsExecutor)", "hammer_ros node"]
+    for row in rows:
+        assert row["messages"] >= 250 and row["received"] > 0, row
+        budget = 2 * (row["publish_seconds"] + 3.0)  # two cores over the run and the counting after it
+        assert 0 < row["subscriber_cpu_seconds"] < budget and 0 < row["publisher_cpu_seconds"] < budget, row
 
 
 def test_the_publisher_resumes_after_a_stall_without_a_burst():

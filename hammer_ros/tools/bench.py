@@ -299,13 +299,14 @@ def _past_the_bare_limit(ladder: Sequence[float], failed):
 
 
 def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[str, ...],
-            tried: list[str]) -> dict[str, Any]:
+            tried: list[str], cpu: dict[tuple[str, float], dict[str, float]] | None = None) -> dict[str, Any]:
     """Samples lost by each of ``subscribers`` at ``rate`` (or why the rate is not a measurement);
-    a line for the table goes to ``tried``. A subscriber that lost samples in a run in which the
-    publisher stalled (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule)
-    is run again, up to STALL_RETRIES times: the stall is the instrument's failure, and the
-    figure is the last run's. The rate the publisher kept leaves out the time of up to MAX_STALLS
-    stalls; with more, the publisher could not keep the rate, and its plain average counts."""
+    a line for the table goes to ``tried``, the CPU of each run to ``cpu[(who, rate)]``
+    (``_cpu_use``). A subscriber that lost samples in a run in which the publisher stalled
+    (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule) is run again,
+    up to STALL_RETRIES times: the stall is the instrument's failure, and the figure is the last
+    run's. The rate the publisher kept leaves out the time of up to MAX_STALLS stalls; with more,
+    the publisher could not keep the rate, and its plain average counts."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
     running = tuple(subscribers)
@@ -322,6 +323,8 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
                 lost[who] = row["error"]
             if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement
                 lost[who] = "no Foxglove message"
+            if cpu is not None:
+                cpu[(who, rate)] = _cpu_use(row)
             if stalled > 0 and isinstance(lost[who], int) and lost[who] > 0 and reruns.get(who, 0) < STALL_RETRIES:
                 reruns[who] = reruns.get(who, 0) + 1
                 again.append(who)
@@ -334,16 +337,35 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
     return lost
 
 
-def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe):
+def _cpu_use(row: dict[str, Any]) -> dict[str, float]:
+    """Of one probe run: the subscriber's CPU microseconds per message received (both topics'
+    messages) and the cores it and the publisher kept busy on average (CPU seconds / publishing
+    time); empty where the probe could not read them."""
+    messages = 2 * row["messages"]
+    subscriber, publisher = row.get("subscriber_cpu_seconds"), row.get("publisher_cpu_seconds")
+    if subscriber is None or publisher is None or not messages or row["publish_seconds"] <= 0:
+        return {}
+    return {"us_per_message": 1e6 * subscriber / messages, "subscriber_cores": subscriber / row["publish_seconds"],
+            "publisher_cores": publisher / row["publish_seconds"]}
+
+
+def _cpu_cell(use: dict[str, float]) -> str:
+    if not use:
+        return "-"
+    return f"{use['us_per_message']:.0f} us, {use['subscriber_cores']:.2f} + {use['publisher_cores']:.2f}"
+
+
+def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe, cpu: dict | None = None):
     """(highest lossless rate, first lossy rate, rates tried) of the node, the bare subscriber and
     the node with a Foxglove client: the ladder (``_past_the_bare_limit``), then REFINE_STEPS
-    geometric midpoints between each one's last lossless and first lossy rate."""
+    geometric midpoints between each one's last lossless and first lossy rate. ``cpu``: filled
+    as by ``_losses``."""
     best = {"node": 0.0, "bare": 0.0, "foxglove": 0.0}
     first_loss: dict[str, float] = {}
     tried: list[str] = []
     for rate in _past_the_bare_limit(ladder, first_loss):
         running = tuple(w for w in best if w not in first_loss)
-        for who, lost in _losses(probe, rate, batch, seconds, running, tried).items():
+        for who, lost in _losses(probe, rate, batch, seconds, running, tried, cpu).items():
             if lost == 0:
                 best[who] = rate
             else:
@@ -355,7 +377,7 @@ def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe
             if first_loss[who] <= REFINE_RATIO * best[who]:
                 break
             rate = float(round(math.sqrt(best[who] * first_loss[who]), -2))
-            if _losses(probe, rate, batch, seconds, (who,), tried).get(who) == 0:
+            if _losses(probe, rate, batch, seconds, (who,), tried, cpu).get(who) == 0:
                 best[who] = rate
             else:
                 first_loss[who] = rate
@@ -369,6 +391,7 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
         ("case", "message"), ("node", "node: max msg/s (samples/s)"), ("reference", "bare rclpy: max msg/s"),
         ("ratio", "node / bare"), ("foxglove", "node + Foxglove client: max msg/s (/ node)"),
         ("tried", "msg/s per topic: samples lost by node / bare / node + Foxglove client"),
+        ("cpu", "CPU at each one's max rate: us per message received; subscriber + publisher cores"),
         ("goal", "goal >= 0.9")])
     try:
         from .ros_rate_probe import probe
@@ -376,7 +399,10 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
         section.notes.append(f"skipped: {exc}")
         return section
     for batch, ladder in rates.items():
-        best, first_loss, tried = _zero_loss_limits(batch, ladder, seconds, probe)
+        cpu: dict[tuple[str, float], dict[str, float]] = {}
+        best, first_loss, tried = _zero_loss_limits(batch, ladder, seconds, probe, cpu)
+        at_limit = {who: cpu.get((who, rate), {}) for who, rate in best.items() if who in ("node", "bare")}
+        at_loss = {who: cpu.get((who, rate), {}) for who, rate in first_loss.items() if who in ("node", "bare")}
         node, bare, foxglove = best["node"], best["bare"], best["foxglove"]
         ratio = node / bare if bare else None
         foxglove_ratio = foxglove / node if node else None
@@ -386,6 +412,8 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                              "ratio": ratio, "foxglove": f"{foxglove:g} ({foxglove_ratio or 0:.2f})",
                              "foxglove_rate": foxglove, "foxglove_ratio": foxglove_ratio,
                              "tried": "; ".join(tried), "ladder_top": "bare" not in first_loss,
+                             "cpu": "; ".join(f"{who} {_cpu_cell(use)}" for who, use in at_limit.items()),
+                             "cpu_at_limit": at_limit, "cpu_at_first_loss": at_loss,
                              "goal": None if ratio is None or foxglove_ratio is None
                              else ratio >= 0.9 and foxglove_ratio >= 0.9})
     section.notes.append("`ros_rate_probe`: one publisher process sends both topics (reliable, depth 1000) for the "
@@ -405,7 +433,11 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                          f"first loss); then up to {REFINE_STEPS} rates between each subscriber's last lossless "
                          f"and first lossy rate (geometric midpoints, while more than x{REFINE_RATIO:g} apart) "
                          "narrow its limit. `ladder_top` true means the bare subscriber never lost up to "
-                         f"{LADDER_CAP:g} msg/s, so its figure is a lower bound; '-' = not run at that rate")
+                         f"{LADDER_CAP:g} msg/s, so its figure is a lower bound; '-' = not run at that rate. CPU: "
+                         "the subscriber's process (all its threads; not the node's worker processes) from the "
+                         "publisher's start until every sample was counted, per message received on both topics, "
+                         "and in cores (CPU seconds / publishing time) beside the publisher's; the JSON also has "
+                         "them at each one's first lossy rate (`cpu_at_first_loss`)")
     return section
 
 
@@ -451,7 +483,9 @@ def bare_decode(path: Path, batch: int) -> int:
 
 def run_replay(path: Path, batch: int, window: int, solve_rate: float | None = None) -> tuple[float, dict]:
     """(wall seconds, JSON document) of ``hammer-ros replay BAG --json`` run in this process
-    (the whole command: bag checks, reading, engine, solves; its output discarded)."""
+    (the whole command: bag checks, reading, engine, solves; its output discarded). The document
+    gains ``cpu_s``: the CPU seconds of this process and of its solver process (a child, counted
+    once it has been waited for), over the command."""
     from ..cli import build_parser
     from ..cli.replay import run as replay
 
@@ -462,9 +496,20 @@ def run_replay(path: Path, batch: int, window: int, solve_rate: float | None = N
         argv += ["--solve-rate", f"{solve_rate:g}"]
     args = build_parser().parse_args(argv)
     out = io.StringIO()
+    before, children = time.process_time(), _children_cpu_seconds()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
         elapsed, _ = _timed(lambda: replay(args))
-    return elapsed, json.loads(out.getvalue())
+    doc = json.loads(out.getvalue())
+    doc["cpu_s"] = {"reading": time.process_time() - before, "solver": _children_cpu_seconds() - children}
+    return elapsed, doc
+
+
+def _children_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's children that have been waited for."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 REPLAY_MODES = (("2 solves / bag s", None), ("final solve only", 1e-6))
@@ -473,7 +518,8 @@ REPLAY_MODES = (("2 solves / bag s", None), ("final solve only", 1e-6))
 def replay_section(messages: dict[int, int], repeats: int) -> Section:
     section = Section("replay", "3. Replay vs bare MCAP read + CDR decode (same bag, same field, same process)", [
         ("case", "bag"), ("mode", "replay solves"), ("replay", "replay samples/s"),
-        ("reference", "bare decode samples/s"), ("ratio", "replay / bare"), ("goal", "goal >= 0.8")])
+        ("reference", "bare decode samples/s"), ("ratio", "replay / bare"),
+        ("cpu", "CPU s: replay's reading + solver process (bare)"), ("goal", "goal >= 0.8")])
     with tempfile.TemporaryDirectory(prefix="hammer_ros_bench_") as tmp:
         for batch, count in messages.items():
             path = Path(tmp) / f"bench_{batch}.mcap"
@@ -482,22 +528,32 @@ def replay_section(messages: dict[int, int], repeats: int) -> Section:
             size = path.stat().st_size / 2**20
             for mode, solve_rate in REPLAY_MODES:
                 replay_rates, bare_rates, ratios = [], [], []
+                cpu: dict[str, list[float]] = {"reading": [], "solver": [], "bare": []}
                 for _ in range(repeats):
                     elapsed, doc = run_replay(path, batch, min(4000, samples // 2), solve_rate)
+                    bare_cpu = time.process_time()
                     tb, decoded = _timed(lambda path=path, batch=batch: bare_decode(path, batch))
+                    cpu["bare"].append(time.process_time() - bare_cpu)
+                    for part in ("reading", "solver"):
+                        cpu[part].append(doc["cpu_s"][part])
                     replay_rates.append(doc["samples"] / elapsed)
                     bare_rates.append(decoded / tb)
                     ratios.append(replay_rates[-1] / bare_rates[-1])
                 ratio = _median(ratios)
+                cpu_s = {part: _median(seconds) for part, seconds in cpu.items()}
                 section.rows.append({
                     "case": f"{kind}, 2 x {count:,} messages, {samples:,} samples/topic, {size:.1f} MiB",
                     "batch": batch, "mode": f"{mode} ({doc['solves']})", "replay": _median(replay_rates),
-                    "reference": _median(bare_rates), "ratio": ratio, "goal": ratio >= 0.8})
+                    "reference": _median(bare_rates), "ratio": ratio, "cpu_s": cpu_s,
+                    "cpu": f"{cpu_s['reading']:.3f} + {cpu_s['solver']:.3f} ({cpu_s['bare']:.3f})",
+                    "goal": ratio >= 0.8})
     section.notes.append("replay: `hammer-ros replay BAG --input /cmd:F --output /response:F --sample-rate 1000 "
                          "--window 4000 --json` (default cls-markov), timed around the whole command in this "
                          "process; samples = aligned grid samples. bare: mcap reader + mcap_ros2 DecoderFactory, "
                          "the field of every message of both topics into a numpy array. Replay and bare alternate; "
-                         "ratio = median of the pairs")
+                         "ratio = median of the pairs. CPU: medians of the replay process's CPU seconds and of its "
+                         "solver process's (forked when the periodic solves are worth it; 0 without), and of the "
+                         "bare decode's (one thread: about its wall time)")
     return section
 
 

@@ -10,7 +10,9 @@ effort, the node's default ``qos_depth``) and once to a fresh
 ``hammer-ros node`` (whose /diagnostics counters are read back). The publisher starts once both
 ends have matched (the bare subscriber's matched-publisher counts, the node's
 ``*_publishers`` on /diagnostics), not after a fixed wait. A rate is sustained when every
-published sample was received. Output: one JSON document per line on stdout. Reusable by
+published sample was received. Each run also reports the CPU seconds the subscriber's process (all
+its threads, from the go until every sample was counted) and the publisher (while publishing) spent:
+``subscriber_cpu_seconds``, ``publisher_cpu_seconds``. Output: one JSON document per line on stdout. Reusable by
 ``hammer-ros bench`` through :func:`probe`.
 """
 
@@ -23,6 +25,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -99,15 +102,16 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
     pairs = _plant_messages(batch) if plant else [(message, message)]
     schedule = Schedule(rate, int(rate * seconds), time.monotonic())
+    cpu = time.process_time()
     while (due := schedule.due(time.monotonic())) > schedule.sent:
         for k in range(schedule.sent, due):
             for pub, msg in zip(pubs, pairs[k % len(pairs)]):
                 pub.publish(msg)
         schedule.sent = due
         time.sleep(max(0.0, schedule.slot(due) - time.monotonic()))
-    elapsed = time.monotonic() - schedule.began
+    elapsed, cpu = time.monotonic() - schedule.began, time.process_time() - cpu
     print(json.dumps({"messages": schedule.sent, "publish_seconds": elapsed, "stalled_seconds": schedule.stalled,
-                      "stalls": schedule.stalls}), flush=True)
+                      "stalls": schedule.stalls, "publisher_cpu_seconds": cpu}), flush=True)
     time.sleep(0.5)
     node.destroy_node()
     rclpy.try_shutdown()
@@ -155,15 +159,18 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
     never = Future()  # spin_until_future_complete on it: the executor's own event loop, as the node runs it
     publisher = _start_publisher(env, rate, seconds, batch)
     _start_when_subscribed(publisher, executor, lambda: all(sub.get_publisher_count() for sub in subs))
+    cpu = time.process_time()
     while publisher.poll() is None:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
     settle = time.monotonic() + SETTLE_SECONDS
     while time.monotonic() < settle:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
+    cpu = time.process_time() - cpu
     for sub in subs:
         node.destroy_subscription(sub)
     sent = _finish(publisher)
-    return {"subscriber": "bare rclpy (EventsExecutor)", "received": min(counts.values()) * batch, **sent}
+    return {"subscriber": "bare rclpy (EventsExecutor)", "received": min(counts.values()) * batch, **sent,
+            "subscriber_cpu_seconds": cpu}
 
 
 def _diagnostics_counters(node):
@@ -193,6 +200,16 @@ def _start_node(env: dict, params: list[str], batch: int) -> subprocess.Popen:
         params = [*params, f"{stream}_topic:={topic}", f"{stream}_type:={type_name}", f"{stream}_field:={field}"]
     cmd = [sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", *[a for p in params for a in ("-p", p)]]
     return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far, all its threads (Linux /proc; None
+    where there is none, or once the process is gone). The node's worker processes are not included."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (proc(5) fields 14, 15)
 
 
 def _spin_until(executor, done, timeout: float) -> bool:
@@ -276,11 +293,14 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
             _spin_until(executor, lambda: client.messages > 0, MATCH_TIMEOUT)  # connected and receiving
         publisher = _start_publisher(env, rate, seconds, batch)
         _start_when_subscribed(publisher, executor, lambda: _node_subscribed(latest))
+        cpu = process_cpu_seconds(ident.pid)
         _spin_until(executor, lambda: publisher.poll() is not None, 120)
         sent = _finish(publisher)
         expected = sent["messages"] * batch
         _spin_until(executor, lambda: min(int(latest.get(k, 0)) for k in (
             "received_excitation", "received_response")) >= expected, SETTLE_SECONDS + 1.0)
+        end = process_cpu_seconds(ident.pid)
+        sent["subscriber_cpu_seconds"] = None if cpu is None or end is None else end - cpu
     finally:
         if client is not None:
             client.close()
