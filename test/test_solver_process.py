@@ -195,3 +195,19 @@ def test_a_worker_that_dies_is_reported_not_waited_for():
             process.solve(snapshot)
     finally:
         process.close()
+
+
+def test_a_worker_says_when_it_is_ready_and_a_dead_one_never_is():
+    """``wait_ready``: a spawned worker is ready once it has imported the solve's modules (the
+    node waits for it before subscribing); a worker killed before it could start is not, and
+    the wait ends when it exits instead of running to the timeout."""
+    with SolverProcess() as process:
+        assert process.wait_ready(60.0)
+        v, y = hammerstein_record(2000, seed=2)
+        assert process.solve(feed_engine(CONFIG, v, y, chunk=1000).snapshot()).ok
+    process = SolverProcess()
+    try:
+        os.kill(process.pid, signal.SIGKILL)  # before its interpreter is up: it never reaches the imports
+        assert not process.wait_ready(60.0)
+    finally:
+        process.close()

@@ -29,6 +29,10 @@ beside replay's reading loop took the interpreter lock from it at every numpy ca
 it; in the worker, a thread that sends the answers made the pipeline stall (replay of the bench's
 100-sample bag: 1.06 s without it, 1.75-1.88 s with it).
 
+A worker sets an event once it has imported what a solve needs (``wait_ready``): the node
+subscribes only then, so that a spawned worker's second of imports does not compete with the
+first second of ingestion.
+
 The worker ignores SIGINT and SIGTERM (sent to a whole process group, they are for the owner,
 which handles them and then closes the worker); it exits when the owner closes the pipe or
 dies, and is killed when it does not exit within CLOSE_TIMEOUT of ``close``.
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import multiprocessing
 import signal
+import time
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
@@ -75,12 +80,16 @@ def diagnose_window(v: np.ndarray, y: np.ndarray, order: int) -> dict[str, Any]:
         return {"error": f"window not diagnosable: {exc}"}
 
 
-def _serve(connection, documents: bool) -> None:
+def _serve(connection, documents: bool, ready) -> None:
     """The worker: solve each snapshot of each batch received with the state of its epoch and
     answer with the batch's outcomes, in order; answer DOCUMENT with the published model's
-    outcome, documented, and a ``Diagnose`` with its window's diagnosis."""
+    outcome, documented, and a ``Diagnose`` with its window's diagnosis. ``ready`` (an Event) is
+    set once the modules of a CLS solve are imported."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
+    from ..identification import correlation_least_squares  # noqa: F401  (what the first solve would import)
+
+    ready.set()
     epoch, published, reference = None, None, 0.0
     last: EngineSnapshot | None = None
     published_outcome: tuple[SolveOutcome, np.ndarray, np.ndarray] | None = None  # with its window (v, y)
@@ -131,8 +140,9 @@ class SolverProcess:
                  role: str = "solver") -> None:
         context = multiprocessing.get_context(start_method)
         self._connection, child = context.Pipe()
-        self._process = context.Process(target=_serve, args=(child, documents), name=f"hammer_ros_{role}",
-                                        daemon=True)
+        self._ready = context.Event()
+        self._process = context.Process(target=_serve, args=(child, documents, self._ready),
+                                        name=f"hammer_ros_{role}", daemon=True)
         self._process.start()
         child.close()
         self.batch = batch
@@ -150,6 +160,17 @@ class SolverProcess:
     @property
     def pid(self) -> int | None:
         return self._process.pid
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait until the worker has started and imported what a solve needs (a spawned worker
+        imports for about a second, on a core that ingestion would otherwise have); False when
+        it has not within ``timeout`` s or has exited. Solves may be submitted before: they wait
+        in the pipe."""
+        deadline = time.monotonic() + timeout
+        while self._process.is_alive() and (left := deadline - time.monotonic()) > 0:
+            if self._ready.wait(min(left, 0.1)):
+                return True
+        return self._ready.is_set()
 
     def _exited(self) -> str:
         self._process.join(CLOSE_TIMEOUT)
