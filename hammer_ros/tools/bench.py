@@ -302,11 +302,12 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
             tried: list[str], cpu: dict[tuple[str, float], dict[str, float]] | None = None) -> dict[str, Any]:
     """Samples lost by each of ``subscribers`` at ``rate`` (or why the rate is not a measurement);
     a line for the table goes to ``tried``, the CPU of each run to ``cpu[(who, rate)]``
-    (``_cpu_use``). A subscriber that lost samples in a run in which the publisher stalled
-    (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule) is run again,
-    up to STALL_RETRIES times: the stall is the instrument's failure, and the figure is the last
-    run's. The rate the publisher kept leaves out the time of up to MAX_STALLS stalls; with more,
-    the publisher could not keep the rate, and its plain average counts."""
+    (``_cpu_use``). The rate the publisher kept leaves out the time of up to MAX_STALLS stalls
+    (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule); with more, its
+    plain average counts, and below 95 % of ``rate`` the run is not a measurement of the
+    subscriber. A subscriber whose publisher fell short so, or that lost samples in a run in which
+    the publisher stalled, is run again, up to STALL_RETRIES times: the instrument failed, and the
+    figure is the last run's."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
     running = tuple(subscribers)
@@ -318,14 +319,16 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
             who = SUBSCRIBER_KEYS.get(row["subscriber"], "bare")
             stalled = row.get("stalled_seconds", 0.0) if row.get("stalls", 0) <= MAX_STALLS else 0.0
             achieved = row["messages"] / max(row["publish_seconds"] - stalled, 1e-9)
-            lost[who] = row["lost"] if achieved >= 0.95 * rate else f"publisher {achieved:.0f}/s"
+            behind = achieved < 0.95 * rate
+            lost[who] = f"publisher {achieved:.0f}/s" if behind else row["lost"]
             if "error" in row:  # the node did not run at this rate
                 lost[who] = row["error"]
             if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement
                 lost[who] = "no Foxglove message"
             if cpu is not None:
                 cpu[(who, rate)] = _cpu_use(row)
-            if stalled > 0 and isinstance(lost[who], int) and lost[who] > 0 and reruns.get(who, 0) < STALL_RETRIES:
+            instrument = behind or (stalled > 0 and isinstance(lost[who], int) and lost[who] > 0)
+            if instrument and "error" not in row and reruns.get(who, 0) < STALL_RETRIES:
                 reruns[who] = reruns.get(who, 0) + 1
                 again.append(who)
         running = tuple(again)
@@ -424,10 +427,10 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                          "subscribed to every channel (goal: >= 0.9 of the node's rate, i.e. at most 10 % lower); "
                          "a rate counts when the publisher kept >= 95 % of it and every sample arrived. The "
                          "publisher sends each message in its slot; when it falls more than 20 ms behind (descheduled) "
-                         "it resumes on a new schedule instead of sending the backlog in one burst, and a subscriber "
-                         f"that lost samples in such a run is run again (up to {STALL_RETRIES} times; 'rerun' in "
-                         f"the table); the rate kept leaves out up to {MAX_STALLS} stalls (more: the publisher could "
-                         "not keep the rate). The ladder "
+                         "it resumes on a new schedule instead of sending the backlog in one burst; the rate kept "
+                         f"leaves out up to {MAX_STALLS} stalls (more: the publisher could not keep the rate). A "
+                         "subscriber that lost samples in such a run, or whose publisher kept < 95 % of the rate, is "
+                         f"run again (up to {STALL_RETRIES} times; 'rerun' in the table). The ladder "
                          f"climbs past the plan's rates (x{LADDER_STEP:g} a step) until the bare subscriber loses "
                          "samples or the publisher cannot keep the rate (a subscriber is not run again above its "
                          f"first loss); then up to {REFINE_STEPS} rates between each subscriber's last lossless "
