@@ -4,6 +4,7 @@ plant again once good data resumes. The tests run in order on the same node."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -146,6 +147,7 @@ def test_a_publisher_that_dies_and_comes_back(rig):
     publisher back (one gap)."""
     before = rig.observer.settle(rig.plant.last)
     assert (before["excitation_publishers"], before["response_publishers"]) == ("1", "1")
+    assert 0 < float(before["cpu_percent"]) < 100 * os.cpu_count(), before["cpu_percent"]  # ingesting: busy
     rig.plant.destroy_publishers()
     rig.wait_for(lambda: rig.observer.next_solve()["excitation_publishers"] == "0", what="no matched publisher")
     rig.plant.create_publishers()

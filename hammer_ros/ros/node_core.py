@@ -296,6 +296,7 @@ class IdentificationCore:
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
         self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
+        self._cpu_mark = (time.monotonic(), time.process_time())  # ``_cpu_percent``'s last reading
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.trigger_services = NodeServices(self)
 
@@ -772,6 +773,7 @@ class IdentificationCore:
             "excitation_publishers": self.inputs["excitation"].publishers(),
             "response_publishers": self.inputs["response"].publishers(),
             "loop_errors": self.loop_errors,
+            "cpu_percent": self._cpu_percent(),
             "solver": (f"process {self.solver.pid}" if self.solver is not None
                        else "thread" + (f" ({self.solver_lost})" if self.solver_lost else "")),
             "diagnosis": (f"process {self.diagnoser.pid}" if self.diagnoser is not None
@@ -789,6 +791,13 @@ class IdentificationCore:
             status["level"] = 1
         if errors:
             status["message"] = f"{status['message']}; bad messages: {errors[0]}"
+
+    def _cpu_percent(self) -> float:
+        """CPU time of the node's process (all its threads; not its worker processes) since the
+        last reading, in % of one core (100 = one core busy)."""
+        (wall, cpu), self._cpu_mark = self._cpu_mark, (time.monotonic(), time.process_time())
+        elapsed = self._cpu_mark[0] - wall
+        return round(100.0 * (self._cpu_mark[1] - cpu) / elapsed, 1) if elapsed > 0 else 0.0
 
     def stop(self) -> None:
         """Stop the worker threads (waits for a running solve up to 1 s)."""
