@@ -282,7 +282,7 @@ LADDER_STEP = 1.5  # beyond the plan's ladder, each rate is this much above the 
 LADDER_CAP = 200_000.0  # msg/s; no publisher here gets near it
 REFINE_STEPS = 2  # rates tried between a subscriber's last lossless rate and its first lossy one
 REFINE_RATIO = 1.08  # ... while the two are further apart than this
-STALL_RETRIES = 2  # reruns of a subscriber that lost samples while the publisher stalled (``_losses``)
+STALL_RETRIES = 2  # reruns of a subscriber whose run the publisher spoiled (a stall, or short of the rate: ``_losses``)
 MAX_STALLS = 3  # more stalls in one run: the publisher cannot keep the rate (its average counts, stalls included)
 SUBSCRIBER_KEYS = {"hammer_ros node": "node", "hammer_ros node + foxglove client": "foxglove"}  # else "bare"
 

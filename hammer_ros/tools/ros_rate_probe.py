@@ -162,13 +162,13 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
     cpu = time.process_time()
     while publisher.poll() is None:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    settle = time.monotonic() + SETTLE_SECONDS
-    while time.monotonic() < settle:
+    sent = _finish(publisher)
+    settle = time.monotonic() + SETTLE_SECONDS  # what is still on its way, until every message is counted
+    while min(counts.values()) < sent["messages"] and time.monotonic() < settle:
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    cpu = time.process_time() - cpu
+    cpu = time.process_time() - cpu  # over the same span as the node's: from the go until all was counted
     for sub in subs:
         node.destroy_subscription(sub)
-    sent = _finish(publisher)
     return {"subscriber": "bare rclpy (EventsExecutor)", "received": min(counts.values()) * batch, **sent,
             "subscriber_cpu_seconds": cpu}
 
