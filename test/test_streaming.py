@@ -99,6 +99,29 @@ def test_sums_before_the_window_is_full_use_every_sample(record):
     assert_sums_match(snap, 30, cross_correlation)
 
 
+def test_a_batch_longer_than_the_window_sums_only_its_newest_window(record, monkeypatch):
+    """A live flush or a replay batch far longer than W: the lag products of samples that have
+    left the window by the end of the add are never formed (they would be added, then
+    subtracted); the sums are still the batch correlations of the window."""
+    import hammer_ros.streaming.correlation_window as correlation_window
+
+    t, v, y = record
+    summed = []
+    products = correlation_window._lag_products
+    monkeypatch.setattr(correlation_window, "_lag_products",
+                        lambda v, y, tau_max, weights=None: summed.append(v.size) or products(v, y, tau_max, weights))
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1000, tau_max=20))
+    engine.add_excitation(t[:200], v[:200])
+    engine.add_response(t[:200], y[:200])
+    summed.clear()
+    engine.add_excitation(t[200:], v[200:])  # 11 800 samples in one batch
+    engine.add_response(t[200:], y[200:])
+    snap = engine.snapshot()
+    assert sum(summed) <= 1000 + 2 * 20 and snap.v.size == 1000
+    np.testing.assert_array_equal(snap.v, v[engine.stats.aligned - 1000 : engine.stats.aligned])
+    assert_sums_match(snap, 20, cross_correlation)
+
+
 @pytest.mark.parametrize("tau_max", [20, 150])
 def test_forgetting_sums_equal_weighted_batch_reference(record, tau_max):
     t, v, y = record

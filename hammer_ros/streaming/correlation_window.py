@@ -62,11 +62,14 @@ class CorrelationWindow:
     """Raw window of aligned samples and the recursive correlation sums over it.
 
     Sliding window (forgetting 1): the products of every centre are formed once, when it
-    arrives, and summed into blocks of >= ``block`` consecutive centres; ``sums`` is the total
-    of the blocks. A block leaves whole (its sums subtracted) once the window has passed it;
-    the part of the oldest block already outside is subtracted only when the correlations are
-    read (once per solve), and ``sums`` is re-added from the blocks every W samples, so
-    rounding cannot drift. Forgetting: ``sums`` decays and the new products are added."""
+    arrives (of a batch longer than W only those of its newest W samples: the others have left
+    the window by the end of the add, so their products would be added only to be subtracted
+    again; a live flush at 10^6 samples/s is many windows long), and summed into blocks of
+    >= ``block`` consecutive centres; ``sums`` is the total of the blocks. A block leaves whole
+    (its sums subtracted) once the window has passed it; the part of the oldest block already
+    outside is subtracted only when the correlations are read (once per solve), and ``sums`` is
+    re-added from the blocks every W samples, so rounding cannot drift. Forgetting: ``sums``
+    decays and the new products are added."""
 
     def __init__(self, window: int, tau_max: int, forgetting: float) -> None:
         self.window, self.tau_max, self.forgetting = window, tau_max, forgetting
@@ -86,6 +89,11 @@ class CorrelationWindow:
         self.blocks: deque[_Block] = deque()  # sliding: consecutive centre blocks, oldest first
         self.since_resync = 0
 
+    def _restart_at(self, count: int) -> None:
+        """An empty window whose next sample is the segment's sample ``count``."""
+        self.reset()
+        self.count = self.window_start = count
+
     def _local(self, start: int, stop: int) -> slice:
         """Slice of the stored arrays holding segment indices start..stop-1."""
         offset = self.count - self.stored
@@ -101,6 +109,11 @@ class CorrelationWindow:
         return self.window_start + self.tau_max, self.count - 1 - self.tau_max
 
     def add(self, v: np.ndarray, y: np.ndarray) -> None:
+        """Append aligned samples and update the sums (sliding: a batch longer than W restarts
+        the window at its newest W samples)."""
+        if self.forgetting >= 1.0 and v.size > self.window:
+            self._restart_at(self.count + v.size - self.window)
+            v, y = v[-self.window :], y[-self.window :]
         for start in range(0, v.size, CHUNK):
             self._add_chunk(v[start : start + CHUNK], y[start : start + CHUNK])
 
