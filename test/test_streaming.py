@@ -216,6 +216,31 @@ def test_zero_order_hold_and_linear_alignment_of_two_rates():
             np.testing.assert_allclose(snap.y, np.interp(grid, t_y, y), atol=1e-12)
 
 
+@pytest.mark.parametrize("missing", [None, 700])
+def test_zero_order_hold_of_a_stream_at_the_grid_rate_with_another_phase(missing):
+    """Both streams at the grid rate, the response 0.37 of a period later (two clocks, or the
+    arrival stamps of two topics): each grid point holds the response's previous sample. With a
+    response sample missing, the point after it holds the one before (no phase at all)."""
+    n = 3000
+    t = 20.0 + np.arange(n) / 1000.0
+    rng = np.random.default_rng(4)
+    v, y = rng.standard_normal(n), rng.standard_normal(n)
+    t_y = t + 0.37e-3
+    keep = np.ones(n, bool)
+    if missing is not None:
+        keep[missing] = False
+    engine = StreamingEngine(EngineConfig(sample_rate=1000.0, window=n, tau_max=5))
+    for k in range(0, n, 250):
+        engine.add_streams({"excitation": (t[k : k + 250], v[k : k + 250]),
+                            "response": (t_y[k : k + 250][keep[k : k + 250]], y[k : k + 250][keep[k : k + 250]])})
+    snap = engine.snapshot()
+    grid = t[1 : 1 + snap.v.size]  # the grid starts at the first excitation stamp after the response's first
+    np.testing.assert_array_equal(snap.v, v[1 : 1 + snap.v.size])
+    held = np.searchsorted(t_y[keep], grid + 1e-5, side="right") - 1
+    np.testing.assert_array_equal(snap.y, y[keep][held])
+    assert snap.v.size >= n - 2
+
+
 def test_grid_at_a_configured_rate_below_the_stream_rates():
     t = np.arange(1000) / 200.0
     engine = StreamingEngine(EngineConfig(sample_rate=50.0, window=500, tau_max=5))

@@ -78,14 +78,18 @@ class _Stream:
 
     def values_at(self, grid: np.ndarray, tol: float, interpolation: str, start: int) -> np.ndarray:
         """The stream's values at the grid points (``start``: the index of the last sample at or before
-        grid[0] + tol, -1 for none)."""
+        grid[0] + tol, -1 for none). Zero-order hold: the last sample at or before each point + tol;
+        when the stream has exactly one sample in each grid interval, at any phase (a stream at the
+        grid rate, e.g. stamped from its own arrivals), that is the run of samples from ``start``,
+        checked by two comparisons instead of a search per point."""
         if interpolation == "linear":
             return np.interp(grid, self.t, self.x)
         t, x = self.t, self.x
-        stamps = t[max(start, 0) : start + grid.size]
-        if start >= 0 and stamps.size == grid.size and np.abs(stamps - grid).max() <= tol:
-            return x[start : start + grid.size]  # a sample at every grid point: the hold is the samples
-        return x[np.searchsorted(t, grid + tol, side="right") - 1]
+        limit = grid + tol
+        held, after = t[max(start, 0) : start + grid.size], t[start + 1 : start + grid.size + 1]
+        if start >= 0 and held.size == grid.size and (held <= limit).all() and (after > limit[: after.size]).all():
+            return x[start : start + grid.size]  # one sample per grid interval (any phase): the hold is the samples
+        return x[np.searchsorted(t, limit, side="right") - 1]
 
 
 
