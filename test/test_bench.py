@@ -194,6 +194,21 @@ def test_a_publisher_that_cannot_keep_the_rate_is_not_a_measurement():
     assert tried == ["100000: 0 (1 rerun) / publisher 50000/s (2 rerun) / -"]
 
 
+def test_a_run_that_sent_too_few_messages_is_not_a_measurement():
+    """A publisher that sent one message and stopped (what a stall made of the publisher's loop
+    before ``Schedule.run``) kept the rate over the time it ran, but its run measured nothing:
+    the subscriber is run again, and the table says why."""
+    runs = [1, 1, 1]
+
+    def probe(rates, batch, seconds, subscribers):
+        return [{"subscriber": "hammer_ros node", "messages": runs.pop(0), "publish_seconds": 0.333,
+                 "stalled_seconds": 0.333, "stalls": 1, "lost": 0}]
+
+    tried: list[str] = []
+    assert bench._losses(probe, 28_500.0, 100, 2.0, ("node",), tried) == {"node": "publisher sent 1 of 57000"}
+    assert not runs and tried == ["28500: publisher sent 1 of 57000 (2 rerun) / - / -"]
+
+
 def test_the_cpu_of_each_run_is_kept_per_subscriber_and_rate():
     """``_losses`` hands each run's CPU to the caller: the subscriber's microseconds per message
     received on the two topics and the cores it and the publisher kept busy; a row without the
@@ -254,3 +269,24 @@ def test_the_publisher_resumes_after_a_stall_without_a_burst():
     assert schedule.due(100.3105) == 155 and schedule.stalls == 1  # 10.5 ms later: at the rate again
     schedule.sent = 13_999
     assert schedule.due(schedule.slot(13_999) + MAX_LAG / 2) == 14_000 and schedule.stalls == 1
+
+
+@pytest.mark.parametrize("stall", [0.05 + 0.0073 * i for i in range(40)])
+def test_the_publisher_sends_every_message_through_a_stall(stall):
+    """``Schedule.run`` on a monotonic clock of a long-running machine (46 000 s): after a stall
+    the restarted schedule puts the next slot at now, where rounding can make no message due yet;
+    the loop sleeps and goes on instead of ending (the loop before it sent 1 message of 200 here)."""
+    from hammer_ros.tools.ros_rate_probe import Schedule
+
+    now = [46_000.123]
+    sent: list[int] = []
+
+    def sleep(seconds: float) -> None:
+        now[0] += seconds + 1e-6
+        if len(sent) == 1 and not schedule.stalls:
+            now[0] += stall  # descheduled after the first message
+
+    schedule = Schedule(37_800.0, 200, now=now[0])
+    schedule.run(sent.append, clock=lambda: now[0], sleep=sleep)
+    assert sent == list(range(200)) and schedule.stalls == 1
+    assert schedule.stalled == pytest.approx(stall, abs=1e-4)

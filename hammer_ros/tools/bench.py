@@ -304,10 +304,10 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
     a line for the table goes to ``tried``, the CPU of each run to ``cpu[(who, rate)]``
     (``_cpu_use``). The rate the publisher kept leaves out the time of up to MAX_STALLS stalls
     (``ros_rate_probe._publish``: it fell more than MAX_LAG behind its schedule); with more, its
-    plain average counts, and below 95 % of ``rate`` the run is not a measurement of the
-    subscriber. A subscriber whose publisher fell short so, or that lost samples in a run in which
-    the publisher stalled, is run again, up to STALL_RETRIES times: the instrument failed, and the
-    figure is the last run's."""
+    plain average counts, and below 95 % of ``rate``, or with fewer than 95 % of the run's
+    messages sent, the run is not a measurement of the subscriber. A subscriber whose publisher
+    fell short so, or that lost samples in a run in which the publisher stalled, is run again, up
+    to STALL_RETRIES times: the instrument failed, and the figure is the last run's."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
     running = tuple(subscribers)
@@ -319,8 +319,10 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
             who = SUBSCRIBER_KEYS.get(row["subscriber"], "bare")
             stalled = row.get("stalled_seconds", 0.0) if row.get("stalls", 0) <= MAX_STALLS else 0.0
             achieved = row["messages"] / max(row["publish_seconds"] - stalled, 1e-9)
-            behind = achieved < 0.95 * rate
-            lost[who] = f"publisher {achieved:.0f}/s" if behind else row["lost"]
+            planned = int(rate * seconds)
+            behind = achieved < 0.95 * rate or row["messages"] < 0.95 * planned
+            lost[who] = (f"publisher {achieved:.0f}/s" if achieved < 0.95 * rate else
+                         f"publisher sent {row['messages']} of {planned}" if behind else row["lost"])
             if "error" in row:  # the node did not run at this rate
                 lost[who] = row["error"]
             if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement

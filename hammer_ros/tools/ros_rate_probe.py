@@ -79,6 +79,17 @@ class Schedule:
             self.stalls += 1
         return min(self.total, int((now - self.start) * self.rate) + 1)
 
+    def run(self, send: Callable[[int], None], clock: Callable[[], float] = time.monotonic,
+            sleep: Callable[[float], None] = time.sleep) -> None:
+        """``send(k)`` each message k < total in its slot. Until all are sent: after a restart the
+        next slot is now, and a rounding that makes none due yet only sleeps (0 s) again."""
+        while self.sent < self.total:
+            due = self.due(clock())
+            for k in range(self.sent, due):
+                send(k)
+            self.sent = max(self.sent, due)
+            sleep(max(0.0, self.slot(self.sent) - clock()))
+
 
 def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
     """Publisher process: wait for a subscriber on both topics, say so (a line on stdout), wait for
@@ -101,14 +112,13 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     values = [float(i % 97) / 97.0 for i in range(batch)]
     message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
     pairs = _plant_messages(batch) if plant else [(message, message)]
+    def send(k: int) -> None:
+        for pub, msg in zip(pubs, pairs[k % len(pairs)]):
+            pub.publish(msg)
+
     schedule = Schedule(rate, int(rate * seconds), time.monotonic())
     cpu = time.process_time()
-    while (due := schedule.due(time.monotonic())) > schedule.sent:
-        for k in range(schedule.sent, due):
-            for pub, msg in zip(pubs, pairs[k % len(pairs)]):
-                pub.publish(msg)
-        schedule.sent = due
-        time.sleep(max(0.0, schedule.slot(due) - time.monotonic()))
+    schedule.run(send)
     elapsed, cpu = time.monotonic() - schedule.began, time.process_time() - cpu
     print(json.dumps({"messages": schedule.sent, "publish_seconds": elapsed, "stalled_seconds": schedule.stalled,
                       "stalls": schedule.stalls, "publisher_cpu_seconds": cpu}), flush=True)
