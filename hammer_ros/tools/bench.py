@@ -320,9 +320,10 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
             stalled = row.get("stalled_seconds", 0.0) if row.get("stalls", 0) <= MAX_STALLS else 0.0
             achieved = row["messages"] / max(row["publish_seconds"] - stalled, 1e-9)
             planned = int(rate * seconds)
-            behind = achieved < 0.95 * rate or row["messages"] < 0.95 * planned
-            lost[who] = (f"publisher {achieved:.0f}/s" if achieved < 0.95 * rate else
-                         f"publisher sent {row['messages']} of {planned}" if behind else row["lost"])
+            slow, short = achieved < 0.95 * rate, row["messages"] < 0.95 * planned
+            behind = slow or short
+            lost[who] = (f"publisher {achieved:.0f}/s" if slow else
+                         f"publisher sent {row['messages']} of {planned}" if short else row["lost"])
             if "error" in row:  # the node did not run at this rate
                 lost[who] = row["error"]
             if row.get("foxglove_messages", 1) == 0:  # the client never connected: not a measurement

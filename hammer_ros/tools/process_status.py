@@ -1,7 +1,9 @@
-"""Memory figures of a process from /proc (Linux), for the bench and the node memory probe."""
+"""Memory and CPU figures of a process from /proc (Linux), for the bench, the node memory probe and
+the rate probe."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 
@@ -22,3 +24,13 @@ def child_pids(pid: int | str = "self") -> list[int]:
         except OSError:  # the thread ended meanwhile
             continue
     return pids
+
+
+def process_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` so far, all its threads, not its children
+    (Linux /proc; None where there is none, or once the process is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (proc(5) fields 14, 15)

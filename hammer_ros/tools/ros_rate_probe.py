@@ -25,11 +25,11 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
 from ..ros.environment import DomainLease, child_environment, prepare_ros_environment
+from .process_status import child_pids, process_cpu_seconds, process_status_kib
 
 TOPICS = ("/command", "/response")
 MATCH_TIMEOUT = 15.0
@@ -212,16 +212,6 @@ def _start_node(env: dict, params: list[str], batch: int) -> subprocess.Popen:
     return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
-def process_cpu_seconds(pid: int) -> float | None:
-    """User + system CPU seconds of process ``pid`` so far, all its threads (Linux /proc; None
-    where there is none, or once the process is gone). The node's worker processes are not included."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (proc(5) fields 14, 15)
-
-
 def _spin_until(executor, done, timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     while not done() and time.monotonic() < deadline:
@@ -342,7 +332,6 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         from std_msgs.msg import String
 
         from ..ros.node import PARAMETERS
-        from .process_status import child_pids, process_status_kib
 
         context = rclpy.Context()  # its own context and no signal handlers: callable from any process
         rclpy.init(context=context, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
