@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from conftest import G1
-from ros_helpers import Listener, RosProcess
+from ros_helpers import WAIT, Listener, RosProcess
 
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.identification.simulate import HammersteinStream
@@ -111,7 +111,7 @@ class Observer:
     def counts(self, *keys: str) -> dict[str, int]:
         return {k: self.count(k) for k in keys}
 
-    def settle(self, stamp: float) -> dict:
+    def settle(self, stamp: float, timeout: float = WAIT) -> dict:
         """The first diagnostics after the node took in both streams up to ``stamp`` (the last
         sample sent): from then on its counters include everything sent."""
         def caught_up():
@@ -119,7 +119,7 @@ class Observer:
             return all(abs(float(d.get(f"last_stamp_{s}", "nan")) - stamp) < 1e-6 for s in ("excitation", "response"))
 
         try:
-            return self.listener.wait_for(lambda: caught_up() and self.diagnostics[-1],
+            return self.listener.wait_for(lambda: caught_up() and self.diagnostics[-1], timeout,
                                           what=f"the node at stamp {stamp}")
         except AssertionError as exc:  # say where the node stood (what it received, lost, dropped)
             d = self.diagnostics[-1] if self.diagnostics else {}

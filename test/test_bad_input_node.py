@@ -11,10 +11,12 @@ import sys
 
 import numpy as np
 import pytest
+from ros_helpers import WAIT
 from stamped_plant import NODE, RATE, WINDOW, pole_error, stamped_node
 
 pytestmark = pytest.mark.ros
 
+TAILS = 4  # tails sent after the burst until one arrives (each waited for WAIT / 2 s)
 GOOD = 0.05  # RSS pole error of a model on one 10 s window (the truth's poles: 0.95, 0.245 +- 0.574j)
 
 
@@ -100,10 +102,18 @@ def test_a_burst_of_100000_messages_is_survived_and_counted(rig):
             msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(ns, 1_000_000_000)
             setattr(msg, field, [float(value)])
             publisher.publish(msg)
-    after = obs.settle(rig.plant.send(100)[-1])  # the tail closes any hole at the end of the burst
+    sent = t.size
+    for tails in range(1, TAILS + 1):  # a tail closes any hole at the end of the burst; DDS may drop it too
+        sent += rig.plant.send(100).size
+        try:
+            after = obs.settle(rig.plant.last, timeout=WAIT / 2)
+            break
+        except AssertionError:
+            if tails == TAILS:
+                raise
     for stream in ("excitation", "response"):
         received, missing = delta(after, before, f"received_{stream}", f"missing_{stream}")
-        assert received + missing == 50_100 and received > 100, (stream, received, missing)
+        assert received + missing == sent and received > 100, (stream, received, missing)
     assert rig.process.process.poll() is None
     identifies(rig)
 
