@@ -48,8 +48,37 @@ def test_a_publisher_pause_restarts_the_count(rng):
     resumed_at = before[-1] + 2.0
     after = [stamper.first_stamp("excitation", t, 1) for t in receive_times(500, rng, start=resumed_at)]
     assert stamper.restarts == 1
-    assert after[0] - before[-1] == pytest.approx(2.0, abs=2e-3)
-    np.testing.assert_allclose(np.diff(after), 1 / RATE, rtol=0, atol=1e-7)
+    # the first message after the pause cannot tell it from a stall: it continues the count;
+    # the next one, arriving at fs and not in a burst, restarts the count at the first
+    assert after[0] - before[-1] == pytest.approx(1 / RATE, abs=1e-9)
+    assert after[1] - before[-1] == pytest.approx(2.0 + 1 / RATE, abs=2e-3)
+    np.testing.assert_allclose(np.diff(after[1:]), 1 / RATE, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("stall, drain", [(0.8, 100.0), (0.8, 3.0), (3.0, 100.0)])
+def test_a_stall_longer_than_resync_is_not_a_pause(rng, stall, drain):
+    """The subscriber stalls for ``stall`` s (longer than ``resync``; 3 s is past the horizon)
+    and then delivers the queued messages of both streams at ``drain`` x fs: nothing restarts,
+    no stamp repeats, and sample k of both streams stays on one grid point. (Restarting the
+    count at the stall's first message put each stream's place a period back per message of
+    the burst: repeated stamps, and the response a sample off the excitation.)"""
+    stamper = ArrivalStamper(RATE, resync=0.5)
+    t_u = receive_times(3000, rng)
+    t_y = np.maximum.accumulate(t_u + rng.uniform(0.0, 3e-4, t_u.size))  # each topic in order
+    sent = 1000.0 + np.arange(t_u.size) / RATE
+    begin = sent[1500]
+    queued = t_u >= begin  # after the stall, both streams are delivered at drain x fs until caught up
+    t_u[queued] = np.maximum(t_u[queued], begin + stall + np.arange(queued.sum()) / (drain * RATE))
+    t_y[queued] = np.maximum(t_y[queued], t_u[queued] + 1e-6)
+    order = np.argsort(np.concatenate([t_u, t_y]), kind="stable")
+    stamps = np.empty(2 * t_u.size)
+    for k in order:
+        stream, t = ("excitation", t_u[k]) if k < t_u.size else ("response", t_y[k - t_u.size])
+        stamps[k] = stamper.first_stamp(stream, float(t), 1)
+    u, y = stamps[: t_u.size], stamps[t_u.size:]
+    assert stamper.restarts == 0
+    np.testing.assert_allclose(np.diff(u), 1 / RATE, rtol=0, atol=1e-7)
+    np.testing.assert_array_equal(u, y)
 
 
 def test_rate_is_inferred_from_arrivals_when_not_configured(rng):
@@ -98,11 +127,13 @@ def test_a_pause_of_the_reference_stream_alone_moves_only_its_samples(rng):
 @pytest.mark.parametrize("rate", [RATE, 0.0])
 def test_a_flush_stamped_at_once_equals_one_message_at_a_time(rng, rate):
     """``first_stamps`` (the node's ingest, one call per stream and flush) gives exactly the
-    floats of ``first_stamp`` per message, through stalls, a pause that restarts the count, a
+    floats of ``first_stamp`` per message, through stalls (one longer than resync), a pause that restarts the count, a
     receive clock that steps back, rate inference and flushes longer than the horizon."""
     per_message = 10
     t_u = receive_times(3000, rng, per_message=per_message)
     t_u[1500:] += 1.0  # a publisher pause: the count restarts
+    stalled = (t_u > t_u[700]) & (t_u < t_u[700] + 0.8)  # a subscriber stall longer than resync
+    t_u[stalled] = t_u[700] + 0.8 + 1e-5 * np.arange(stalled.sum())
     t_u[2200:] -= 0.05  # the receive clock steps back (2.5 messages)
     t_y = t_u + rng.uniform(0.0, 3e-4, t_u.size)
     one, flushes = ArrivalStamper(rate, horizon=0.5), ArrivalStamper(rate, horizon=0.5)

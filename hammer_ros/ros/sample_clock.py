@@ -21,11 +21,18 @@ that the identification cannot tell from the plant. A move of the reference's ba
 stream with it.
 
 A stall of the subscriber (messages queued, then delivered in a burst) moves nothing. A receive
-time more than ``resync`` seconds after the count predicts (the publisher paused, or samples were
-lost upstream) or before it (the publisher runs faster than fs) restarts the count of that stream
-(``restarts``). A shorter publisher pause is removed from the stream (the samples stay contiguous,
-which is exact when the plant paused too) until the ``horizon`` forgets the pre-pause messages;
-then the stamps jump forward and the engine sees a gap.
+time more than ``resync`` seconds before the count predicts (the publisher runs faster than fs)
+restarts the count of that stream (``restarts``). A receive time more than ``resync`` after it is
+a stall or a publisher pause (or samples lost upstream), and the message itself cannot tell which:
+it is stamped on the count, and the messages after it decide. If they arrive faster than ``BURST``
+x fs, a stall's queue is being delivered: the count goes on, and the bases from before the stall
+stay until the burst has caught up and ended (a restart at the stall's first message set the base
+from that late message; the burst's messages, each a period less delayed than the last, then
+moved the stream's place back a period per message: repeated stamps, and the response a sample
+off the excitation for as long as the burst lasted). If they arrive at about fs, the publisher
+paused: the count restarts at the first late message. A pause shorter than ``resync`` is removed
+from the stream (the samples stay contiguous, which is exact when the plant paused too) until the
+``horizon`` forgets the pre-pause messages; then the stamps jump forward and the engine sees a gap.
 
 With fs unknown (0), the rate is inferred from the first ``infer_seconds`` of the first stream:
 the least-squares slope of the sample count over the receive time, rounded to 3 significant
@@ -42,6 +49,7 @@ import numpy as np
 INFER_SECONDS = 2.0
 HYSTERESIS = 0.25  # periods past the half-way point before a stream's place on the grid moves
 INFER_MIN_MESSAGES = 16
+BURST = 1.5  # arrivals faster than this many times fs after a late message: a stall's burst
 
 
 def _round_significant(x: float, digits: int = 3) -> float:
@@ -60,11 +68,32 @@ class _CountedStream:
         self.count = 0  # samples stamped since the last (re)start
         self.history: deque[tuple[float, float]] = deque()  # (receive time, base candidate), candidates increasing
         self.place: int | None = None  # periods from the anchor (reference) or from the reference's base
+        # the first late message while a stall and a pause are told apart: (receive time, count before it, its samples)
+        self.late_since: tuple[float, int, int] | None = None
 
     def restart(self) -> None:
         self.count = 0
         self.history.clear()
         self.place = None
+        self.late_since = None
+
+    def paused(self, receive_time: float, count: int, period: float) -> bool:
+        """Whether the late messages since the first one say that the publisher paused: the
+        samples after it arrived no faster than ``BURST`` x fs. The first late message itself
+        cannot tell (a stall's burst follows it, a pause's steady stream does): it is stamped on."""
+        if self.late_since is None:
+            self.late_since = (receive_time, self.count, count)
+            return False
+        since, before, samples = self.late_since
+        return (self.count + count - before - samples) * period <= BURST * (receive_time - since)
+
+    def restart_at_late_message(self, period: float) -> None:
+        """Restart the count at the first late message (the publisher's first after its pause)."""
+        since, before, samples = self.late_since
+        self.count -= before
+        self.history = deque([(since, since - (samples - 1) * period)])
+        self.place = None
+        self.late_since = None
 
 
 class ArrivalStamper:
@@ -103,15 +132,25 @@ class ArrivalStamper:
         period = 1.0 / self.rate
         candidate = receive_time - (s.count + count - 1) * period
         history = s.history
-        if history and abs(candidate - history[0][1]) > self.resync:
-            self.restarts += 1
-            s.restart()
-            candidate = receive_time - (count - 1) * period
+        if history:
+            late = candidate - history[0][1]
+            if late < -self.resync:  # the publisher runs faster than fs
+                self.restarts += 1
+                s.restart()
+                candidate = receive_time - (count - 1) * period
+            elif late > self.resync:
+                if s.paused(receive_time, count, period):
+                    self.restarts += 1
+                    s.restart_at_late_message(period)
+                    history = s.history
+                    candidate = receive_time - (s.count + count - 1) * period
+            elif s.late_since is not None and count * period <= BURST * (receive_time - history[-1][0]):
+                s.late_since = None  # a stall: its burst has caught up and ended
         while history and history[-1][1] >= candidate:
             history.pop()
         history.append((receive_time, candidate))
-        while history[0][0] < receive_time - self.horizon:
-            history.popleft()
+        while s.late_since is None and history[0][0] < receive_time - self.horizon:
+            history.popleft()  # (a late message keeps the bases from before it until it is understood)
         base = history[0][1]
         if self._reference is None:
             self._reference, self._anchor = s, base  # its first stamp: count 0
@@ -155,7 +194,8 @@ class ArrivalStamper:
         and update the state as ``first_stamp`` would; returns its length (0: none)."""
         s = self._streams.get(stream)
         reference = self._reference
-        if s is None or not s.history or s.place is None or reference is None or reference.place is None:
+        if (s is None or not s.history or s.place is None or s.late_since is not None
+                or reference is None or reference.place is None):
             return 0
         period = 1.0 / self.rate
         m = np.arange(r.size)
