@@ -5,6 +5,7 @@ the benchmark's business, not the tests'). The live-node rate section is left to
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -109,7 +110,8 @@ def test_the_rate_ladder_brackets_each_limit_and_narrows_it():
         return [{"subscriber": names[who], "messages": rates[0] * seconds, "publish_seconds": seconds,
                  "lost": 0 if rates[0] <= limits[who] else 100} for who in subscribers]
 
-    best, first_loss, tried = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
+    best, first_loss, tried, lower = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
+    assert lower == {"node": False, "bare": False, "foxglove": False}  # each lost samples above its figure
     for who, limit in limits.items():
         assert best[who] <= limit < first_loss[who] <= 1.15 * best[who], (who, best[who], first_loss[who])
         lossy = [r for w, r in runs if w == who and r > limit]
@@ -119,8 +121,10 @@ def test_the_rate_ladder_brackets_each_limit_and_narrows_it():
 
 def test_a_node_that_refuses_a_rate_is_reported_not_measured():
     """A node that exits at startup (e.g. a sample rate out of its parameter range) is neither a
-    lossless nor a lossy measurement of throughput: its reason is in the ``tried`` line and the
-    node's figure stays the last rate it ran at."""
+    lossless nor a lossy measurement of throughput: its reason is in the ``tried`` line, the
+    node's figure is the highest rate it ran at without loss, a lower bound."""
+    names = {"node": "hammer_ros node", "foxglove": "hammer_ros node + foxglove client"}
+
     def probe(rates, batch, seconds, subscribers):
         rows = []
         for who in subscribers:
@@ -128,16 +132,37 @@ def test_a_node_that_refuses_a_rate_is_reported_not_measured():
                 rows.append({"subscriber": "bare rclpy", "messages": rates[0] * seconds, "publish_seconds": seconds,
                              "lost": 0 if rates[0] <= 12_000 else 100})
             elif rates[0] > 6_000:  # what ros_rate_probe._node returns for a node that exited
-                rows.append({"subscriber": "hammer_ros node", "messages": 0, "publish_seconds": 0.0, "lost": 0,
+                rows.append({"subscriber": names[who], "messages": 0, "publish_seconds": 0.0, "lost": 0,
                              "error": "node exited 2: sample_rate: out of range"})
             else:
-                rows.append({"subscriber": "hammer_ros node", "messages": rates[0] * seconds,
+                rows.append({"subscriber": names[who], "messages": rates[0] * seconds,
                              "publish_seconds": seconds, "lost": 0})
         return rows
 
-    best, first_loss, tried = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
-    assert best["node"] == 5000.0 and 6000.0 < first_loss["node"] <= 8500.0
+    best, first_loss, tried, lower = bench._zero_loss_limits(1, (1000.0, 5000.0, 8500.0), 1.0, probe)
+    assert 5000.0 <= best["node"] <= 6000.0 < first_loss["node"] <= 8500.0
+    assert lower["node"] and not lower["bare"]  # the node never lost a sample: its figure is a lower bound
     assert any("node exited 2: sample_rate: out of range" in line for line in tried)
+
+
+def test_a_subscriber_the_publisher_could_not_outrun_has_a_lower_bound():
+    """The bare subscriber never loses a sample, but above 60 000 msg/s the publisher keeps only
+    80 % of the rate: the bare figure is the highest rate the publisher kept, marked as a lower
+    bound (what the full run of 2026-12-03 21:19 reported as a measured limit), while the node,
+    which lost samples above its figure, is measured."""
+    names = {"node": "hammer_ros node", "bare": "bare rclpy", "foxglove": "hammer_ros node + foxglove client"}
+    limits = {"node": 50_000.0, "bare": math.inf, "foxglove": 45_000.0}
+
+    def probe(rates, batch, seconds, subscribers):
+        kept = 1.0 if rates[0] <= 60_000 else 0.8
+        return [{"subscriber": names[who], "messages": int(kept * rates[0] * seconds), "publish_seconds": seconds,
+                 "lost": 0 if rates[0] <= limits[who] else 100} for who in subscribers]
+
+    best, first_loss, tried, lower = bench._zero_loss_limits(1, (10_000.0, 30_000.0), 1.0, probe)
+    assert lower == {"node": False, "bare": True, "foxglove": False}
+    assert 45_000 < best["bare"] <= 60_000 < first_loss["bare"]
+    assert best["node"] <= 50_000 < first_loss["node"]
+    assert any("publisher" in line.split(" / ")[1] for line in tried)
 
 
 def test_a_loss_while_the_publisher_stalled_is_measured_again():

@@ -362,32 +362,36 @@ def _cpu_cell(use: dict[str, float]) -> str:
 
 
 def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe, cpu: dict | None = None):
-    """(highest lossless rate, first lossy rate, rates tried) of the node, the bare subscriber and
-    the node with a Foxglove client: the ladder (``_past_the_bare_limit``), then REFINE_STEPS
-    geometric midpoints between each one's last lossless and first lossy rate. ``cpu``: filled
-    as by ``_losses``."""
+    """(highest lossless rate, first rate that was not lossless, rates tried, lower bounds) of the
+    node, the bare subscriber and the node with a Foxglove client: the ladder
+    (``_past_the_bare_limit``), then REFINE_STEPS geometric midpoints between each one's last
+    lossless and first other rate. A figure is a lower bound (``lower[who]``) when no run of that
+    subscriber lost samples: every rate above it was not a measurement (the publisher could not
+    keep it, the node refused it) or the ladder reached its cap. ``cpu``: filled as by ``_losses``."""
     best = {"node": 0.0, "bare": 0.0, "foxglove": 0.0}
     first_loss: dict[str, float] = {}
+    lossy: set[str] = set()  # subscribers that lost samples in a run (not only a failed instrument)
     tried: list[str] = []
-    for rate in _past_the_bare_limit(ladder, first_loss):
-        running = tuple(w for w in best if w not in first_loss)
+
+    def measure(rate: float, running: tuple[str, ...]) -> None:
         for who, lost in _losses(probe, rate, batch, seconds, running, tried, cpu).items():
             if lost == 0:
                 best[who] = rate
             else:
-                first_loss[who] = rate
+                first_loss[who] = min(rate, first_loss.get(who, math.inf))
+                if isinstance(lost, int):
+                    lossy.add(who)
+
+    for rate in _past_the_bare_limit(ladder, first_loss):
+        measure(rate, tuple(w for w in best if w not in first_loss))
         if len(first_loss) == len(best):
             break
     for who in best:
         for _ in range(REFINE_STEPS if best[who] and who in first_loss else 0):
             if first_loss[who] <= REFINE_RATIO * best[who]:
                 break
-            rate = float(round(math.sqrt(best[who] * first_loss[who]), -2))
-            if _losses(probe, rate, batch, seconds, (who,), tried, cpu).get(who) == 0:
-                best[who] = rate
-            else:
-                first_loss[who] = rate
-    return best, first_loss, tried
+            measure(float(round(math.sqrt(best[who] * first_loss[who]), -2)), (who,))
+    return best, first_loss, tried, {who: who not in lossy for who in best}
 
 
 def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
@@ -406,18 +410,19 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
         return section
     for batch, ladder in rates.items():
         cpu: dict[tuple[str, float], dict[str, float]] = {}
-        best, first_loss, tried = _zero_loss_limits(batch, ladder, seconds, probe, cpu)
+        best, first_loss, tried, lower = _zero_loss_limits(batch, ladder, seconds, probe, cpu)
         at_limit = {who: cpu.get((who, rate), {}) for who, rate in best.items() if who in ("node", "bare")}
         at_loss = {who: cpu.get((who, rate), {}) for who, rate in first_loss.items() if who in ("node", "bare")}
         node, bare, foxglove = best["node"], best["bare"], best["foxglove"]
         ratio = node / bare if bare else None
         foxglove_ratio = foxglove / node if node else None
         label = "Float64 (1 sample)" if batch == 1 else f"Float64MultiArray ({batch} samples)"
-        section.rows.append({"case": label, "batch": batch, "node": f"{node:g} ({node * batch:g})",
-                             "node_rate": node, "reference": f"{bare:g}", "reference_rate": bare,
+        at_least = {who: ">= " if lower[who] else "" for who in best}
+        section.rows.append({"case": label, "batch": batch, "node": f"{at_least['node']}{node:g} ({node * batch:g})",
+                             "node_rate": node, "reference": f"{at_least['bare']}{bare:g}", "reference_rate": bare,
                              "ratio": ratio, "foxglove": f"{foxglove:g} ({foxglove_ratio or 0:.2f})",
                              "foxglove_rate": foxglove, "foxglove_ratio": foxglove_ratio,
-                             "tried": "; ".join(tried), "ladder_top": "bare" not in first_loss,
+                             "tried": "; ".join(tried), "ladder_top": lower["bare"], "lower_bound": lower,
                              "cpu": "; ".join(f"{who} {_cpu_cell(use)}" for who, use in at_limit.items()),
                              "cpu_at_limit": at_limit, "cpu_at_first_loss": at_loss,
                              "goal": None if ratio is None or foxglove_ratio is None
@@ -439,8 +444,10 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                          "samples or the publisher cannot keep the rate (a subscriber is not run again above its "
                          f"first loss); then up to {REFINE_STEPS} rates between each subscriber's last lossless "
                          f"and first lossy rate (geometric midpoints, while more than x{REFINE_RATIO:g} apart) "
-                         "narrow its limit. `ladder_top` true means the bare subscriber never lost up to "
-                         f"{LADDER_CAP:g} msg/s, so its figure is a lower bound; '-' = not run at that rate. CPU: "
+                         "narrow its limit. A figure marked '>=' (`lower_bound` in the JSON, `ladder_top` for the bare "
+                         "subscriber) is a lower bound: that subscriber lost no sample at any rate it ran, the "
+                         f"runs above its figure were not measurements (the publisher could not keep the rate) or "
+                         f"the ladder reached {LADDER_CAP:g} msg/s; '-' = not run at that rate. CPU: "
                          "the subscriber's process (all its threads; not the node's worker processes) from the "
                          "publisher's start until every sample was counted, per message received on both topics, "
                          "and in cores (CPU seconds / publishing time) beside the publisher's; the JSON also has "
