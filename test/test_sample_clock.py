@@ -55,6 +55,22 @@ def test_a_publisher_pause_restarts_the_count(rng):
     np.testing.assert_allclose(np.diff(after[1:]), 1 / RATE, rtol=0, atol=1e-7)
 
 
+def test_a_second_pause_after_the_first_late_message_restarts_at_the_next(rng):
+    """A message after a 1 s pause, then another 1 s pause: the count restarts at the message
+    after the second pause (not at the lone message between them, which would put the second
+    pause's samples 1 s early), and every later sample lies at its send time."""
+    stamper = ArrivalStamper(RATE, resync=0.5)
+    before = [stamper.first_stamp("excitation", t, 1) for t in receive_times(500, rng)]
+    lone = before[-1] + 1.0
+    stamper.first_stamp("excitation", lone + 2e-4, 1)
+    resumed = receive_times(500, rng, start=lone + 1.0)
+    after = np.array([stamper.first_stamp("excitation", t, 1) for t in resumed])
+    sent = lone + 1.0 + np.arange(500) / RATE
+    assert stamper.restarts == 1
+    assert np.abs(after - sent).max() < 1e-3
+    np.testing.assert_allclose(np.diff(after), 1 / RATE, rtol=0, atol=1e-7)
+
+
 @pytest.mark.parametrize("stall, drain", [(0.8, 100.0), (0.8, 3.0), (3.0, 100.0)])
 def test_a_stall_longer_than_resync_is_not_a_pause(rng, stall, drain):
     """The subscriber stalls for ``stall`` s (longer than ``resync``; 3 s is past the horizon)

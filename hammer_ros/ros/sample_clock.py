@@ -144,6 +144,9 @@ class ArrivalStamper:
                     s.restart_at_late_message(period)
                     history = s.history
                     candidate = receive_time - (s.count + count - 1) * period
+                    if candidate - history[0][1] > self.resync:  # it paused again after that message
+                        s.restart()
+                        candidate = receive_time - (count - 1) * period
             elif s.late_since is not None and count * period <= BURST * (receive_time - history[-1][0]):
                 s.late_since = None  # a stall: its burst has caught up and ended
         while history and history[-1][1] >= candidate:
