@@ -30,7 +30,8 @@ stay until the burst has caught up and ended (a restart at the stall's first mes
 from that late message; the burst's messages, each a period less delayed than the last, then
 moved the stream's place back a period per message: repeated stamps, and the response a sample
 off the excitation for as long as the burst lasted). If they arrive at about fs, the publisher
-paused: the count restarts at the first late message. A pause shorter than ``resync`` is removed
+paused: the count restarts at the first late message (at the message that decides, when that one
+came another ``resync`` after the first: the publisher paused twice). A pause shorter than ``resync`` is removed
 from the stream (the samples stay contiguous, which is exact when the plant paused too) until the
 ``horizon`` forgets the pre-pause messages; then the stamps jump forward and the engine sees a gap.
 
