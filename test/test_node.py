@@ -113,7 +113,7 @@ def test_diagnosis_of_the_window_is_published(live):
                          timeout=4 * NODE["diagnosis_period"], what="a diagnosis of a full window")[-1]
     assert NODE["diagnosis_window"] < NODE["window"]
     assert max(d["samples"] for d in live.diagnoses) == NODE["diagnosis_window"]
-    assert full["cause"] == "none", full
+    assert full["cause"] == "none", (full, live.diagnostics[-1])  # the counters: restarts, duplicates, gaps
     assert full["extended"] is None and full["gain"] is None
     assert full["baseline"]["fit_percent"] > 80, live.diagnostics[-1]  # the counters tell losses and restarts
     assert {"test", "value", "bound", "passed"} <= set(full["evidence"][0])

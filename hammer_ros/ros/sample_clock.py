@@ -79,12 +79,8 @@ class _CountedStream:
         self.late_since = None
 
     def paused(self, receive_time: float, count: int, period: float) -> bool:
-        """Whether the late messages since the first one say that the publisher paused: the
-        samples after it arrived no faster than ``BURST`` x fs. The first late message itself
-        cannot tell (a stall's burst follows it, a pause's steady stream does): it is stamped on."""
-        if self.late_since is None:
-            self.late_since = (receive_time, self.count, count)
-            return False
+        """Whether the messages since the first late one say that the publisher paused: their
+        samples arrived no faster than ``BURST`` x fs (a stall's queue arrives faster)."""
         since, before, samples = self.late_since
         return (self.count + count - before - samples) * period <= BURST * (receive_time - since)
 
@@ -140,7 +136,9 @@ class ArrivalStamper:
                 s.restart()
                 candidate = receive_time - (count - 1) * period
             elif late > self.resync:
-                if s.paused(receive_time, count, period):
+                if s.late_since is None:  # alone it cannot tell a stall from a pause: stamped on the count
+                    s.late_since = (receive_time, s.count, count)
+                elif s.paused(receive_time, count, period):
                     self.restarts += 1
                     s.restart_at_late_message(period)
                     history = s.history
