@@ -84,13 +84,21 @@ class _CountedStream:
         since, before, samples = self.late_since
         return (self.count + count - before - samples) * period <= BURST * (receive_time - since)
 
-    def restart_at_late_message(self, period: float) -> None:
-        """Restart the count at the first late message (the publisher's first after its pause)."""
+    def restart_after_pause(self, receive_time: float, count: int, period: float, resync: float) -> float:
+        """Restart the count after a publisher pause: at the first late message (the publisher's
+        first after the pause) when this message continues it, else here (the publisher paused
+        again after it). Returns this message's base candidate."""
         since, before, samples = self.late_since
+        first = since - (samples - 1) * period
+        candidate = receive_time - (self.count - before + count - 1) * period
+        if candidate - first > resync:
+            self.restart()
+            return receive_time - (count - 1) * period
         self.count -= before
-        self.history = deque([(since, since - (samples - 1) * period)])
+        self.history = deque([(since, first)])
         self.place = None
         self.late_since = None
+        return candidate
 
 
 class ArrivalStamper:
@@ -140,14 +148,10 @@ class ArrivalStamper:
                     s.late_since = (receive_time, s.count, count)
                 elif s.paused(receive_time, count, period):
                     self.restarts += 1
-                    s.restart_at_late_message(period)
+                    candidate = s.restart_after_pause(receive_time, count, period, self.resync)
                     history = s.history
-                    candidate = receive_time - (s.count + count - 1) * period
-                    if candidate - history[0][1] > self.resync:  # it paused again after that message
-                        s.restart()
-                        candidate = receive_time - (count - 1) * period
             elif s.late_since is not None and count * period <= BURST * (receive_time - history[-1][0]):
-                s.late_since = None  # a stall: its burst has caught up and ended
+                s.late_since = None  # a stall: its burst has caught up and ended (history[-1]: the last message)
         while history and history[-1][1] >= candidate:
             history.pop()
         history.append((receive_time, candidate))
