@@ -283,6 +283,7 @@ LADDER_CAP = 200_000.0  # msg/s; no publisher here gets near it
 REFINE_STEPS = 2  # rates tried between a subscriber's last lossless rate and its first lossy one
 REFINE_RATIO = 1.08  # ... while the two are further apart than this
 STALL_RETRIES = 2  # reruns of a subscriber whose run the publisher spoiled (a stall, or short of the rate: ``_losses``)
+CONFIRMATIONS = 1  # reruns of a subscriber that lost samples in a clean run, before the rate counts as lost
 MAX_STALLS = 3  # more stalls in one run: the publisher cannot keep the rate (its average counts, stalls included)
 SUBSCRIBER_KEYS = {"hammer_ros node": "node", "hammer_ros node + foxglove client": "foxglove"}  # else "bare"
 
@@ -307,9 +308,12 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
     plain average counts, and below 95 % of ``rate``, or with fewer than 95 % of the run's
     messages sent, the run is not a measurement of the subscriber. A subscriber whose publisher
     fell short so, or that lost samples in a run in which the publisher stalled, is run again, up
-    to STALL_RETRIES times: the instrument failed, and the figure is the last run's."""
+    to STALL_RETRIES times: the instrument failed. A loss in a clean run is confirmed by
+    CONFIRMATIONS more runs, so that one hiccup of the shared machine does not end a
+    subscriber's ladder (both subscribers alike). The figure is the last run's."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
+    confirmations: dict[str, int] = {}
     running = tuple(subscribers)
     while running:
         with contextlib.redirect_stdout(sys.stderr):  # the probe logs its rows on stdout
@@ -330,8 +334,15 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
                 lost[who] = "no Foxglove message"
             if cpu is not None:
                 cpu[(who, rate)] = _cpu_use(row)
-            instrument = behind or (stalled > 0 and isinstance(lost[who], int) and lost[who] > 0)
-            if instrument and "error" not in row and reruns.get(who, 0) < STALL_RETRIES:
+            lossy = isinstance(lost[who], int) and lost[who] > 0
+            instrument = behind or (stalled > 0 and lossy)
+            if "error" in row:
+                continue
+            if instrument and reruns.get(who, 0) < STALL_RETRIES:
+                reruns[who] = reruns.get(who, 0) + 1
+                again.append(who)
+            elif lossy and not instrument and confirmations.get(who, 0) < CONFIRMATIONS:
+                confirmations[who] = confirmations.get(who, 0) + 1
                 reruns[who] = reruns.get(who, 0) + 1
                 again.append(who)
         running = tuple(again)
@@ -439,7 +450,8 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float) -> Section:
                          "it resumes on a new schedule instead of sending the backlog in one burst; the rate kept "
                          f"leaves out up to {MAX_STALLS} stalls (more: the publisher could not keep the rate). A "
                          "subscriber that lost samples in such a run, or whose publisher fell short so, is "
-                         f"run again (up to {STALL_RETRIES} times; 'rerun' in the table). The ladder "
+                         f"run again (up to {STALL_RETRIES} times; 'rerun' in the table); a loss in a clean run "
+                         f"is confirmed by {CONFIRMATIONS} more run (the figure is the last run's). The ladder "
                          f"climbs past the plan's rates (x{LADDER_STEP:g} a step) until the bare subscriber loses "
                          "samples or the publisher cannot keep the rate (a subscriber is not run again above its "
                          f"first loss); then up to {REFINE_STEPS} rates between each subscriber's last lossless "
