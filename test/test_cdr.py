@@ -3,6 +3,8 @@ fast path) gives exactly what the message objects give, for rclpy's own serializ
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -210,3 +212,52 @@ def test_many_messages_of_one_layout_are_read_at_once_with_the_same_values():
     joint = JointState(position=[0.5])
     assert extract_batch(raw_extractor(JointState, parse_field_path("position[:]")),
                          [serialize_message(joint)]) is None  # a header: its stamp is read per message
+
+
+def test_a_bag_extractor_reads_every_message_of_a_stream_as_if_it_were_the_first():
+    """Replay's extractor reads a message with the last one's length and bytes up to a field that
+    ends the message without walking it: over a stream whose layout changes and comes back
+    (counts, labels, offsets, byte order, cut messages), every value and error is the one of a
+    fresh extractor; a field with something after it is walked every time."""
+    import struct
+
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+    from hammer_ros.io.bags import message_definition
+    from hammer_ros.ros.cdr import schema_extractor
+
+    def multi(data, label="", offset=0):
+        msg = Float64MultiArray(data=data)
+        msg.layout.data_offset = offset
+        if label:
+            msg.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=1)]
+        return serialize_message(msg)
+
+    big = b"\x00\x00\x00\x00" + struct.pack(">III", 0, 0, 3) + b"\0" * 4 + struct.pack(">ddd", 1.5, 2.5, -4.0)
+    stream = [multi([1.0, 2.0, 3.0]), multi([4.0, 5.0, 6.0]), multi([7.0, 8.0]), multi([1.0, 2.0, 9.0], offset=3),
+              multi([7.0, 7.5, 8.0], "abc"), multi([7.0, 7.5, 8.5], "abd"), big, multi([0.5, 0.25, 0.125]),
+              multi([0.5, 0.25, 0.125])[:-1], multi([1.0, 1.0, 1.0])]
+    name = "std_msgs/msg/Float64MultiArray"
+    for text in ("data[:]", "data[2]"):
+        reused = schema_extractor(name, message_definition(name), parse_field_path(text))
+        for data in stream:
+            fresh = schema_extractor(name, message_definition(name), parse_field_path(text))
+            try:
+                expected = np.atleast_1d(fresh(data)[0]).tolist()
+            except FieldError as error:
+                with pytest.raises(FieldError, match=re.escape(str(error))):
+                    reused(data)
+                continue
+            assert np.atleast_1d(reused(data)[0]).tolist() == expected, (text, data)
+    trailing = schema_extractor("my_msgs/msg/Tail", "float64[] x\nstring s\n", parse_field_path("x"))
+
+    def tail(x, s):
+        return b"\x00\x01\x00\x00" + struct.pack("<I", len(x)) + b"\0" * 4 + struct.pack(f"<{len(x)}d", *x) + \
+            struct.pack("<I", len(s) + 1) + s.encode() + b"\0"
+    assert trailing(tail([1.0, 2.0], "ab"))[0].tolist() == [1.0, 2.0]
+    assert trailing(tail([3.0, 4.0], "cd"))[0].tolist() == [3.0, 4.0]
+    lying = tail([3.0, 4.0], "cd")
+    lying = lying[:-7] + struct.pack("<I", 10) + lying[-3:]  # the same bytes up to x, a string past the end
+    with pytest.raises(FieldError, match="ends before it"):  # walked, not taken from the last message
+        trailing(lying)

@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from hammer_ros.io.bags import bag_duration, parse_stream_spec
 from hammer_ros.io.replay import replay_bag
 from hammer_ros.streaming.config import EngineConfig
-from hammer_ros.streaming.engine import StreamingEngine, solve_snapshot
+from hammer_ros.streaming.engine import StreamingEngine, decide_outcome, estimate_snapshot, solve_snapshot
 from hammer_ros.streaming.solver_process import SolverProcess, diagnose_window
 from hammer_ros.tools.bench import feed_engine, hammerstein_record
 
@@ -113,6 +113,50 @@ def test_without_documents_the_outcomes_are_the_in_process_ones_and_the_last_goo
     assert (documented.doc, documented.markov, documented.stamp) == (last_ok.doc, last_ok.markov, last_ok.stamp)
 
 
+@pytest.mark.parametrize("documents", [True, False])
+def test_estimates_made_by_the_owner_give_the_in_process_outcomes(documents):
+    """Replay's reading loop estimates some snapshots itself when the worker is behind
+    (``estimate_snapshot``, with the reference std of the outcomes it has collected, here none) and
+    the worker only decides them: every outcome is the in-process one, through filling, ok, kept
+    (slow noise on the output), not exciting relative to the published models (a faded input) and
+    a gap."""
+    v, y = hammerstein_record(20_000, seed=11)
+    t = np.arange(v.size) / 1000.0
+    t[14_000:] += 5.0  # a gap: the window restarts
+    slow = np.convolve(np.random.default_rng(3).standard_normal(y.size), 0.97 ** np.arange(200))[: y.size]
+    y[6000:8000] += np.std(y) * slow[6000:8000]
+    v[9000:13_000] *= 0.03
+    expected, sent = [], 0
+    with SolverProcess("fork", batch=3, documents=documents) as process:
+        for i, (here, there) in enumerate(_fed_in_parts(t, v, y, 400)):
+            expected.append(solve_snapshot(replace(here.snapshot(), published=here._published,
+                                                   reference_std=here._reference_std), documents))
+            here.record(expected[-1])
+            snapshot = there.snapshot()
+            estimate = estimate_snapshot(snapshot, documents) if i % 3 else None
+            sent += estimate is not None and estimate.result is not None
+            process.submit(snapshot, estimate)
+        outcomes = [process.result() for _ in expected]
+    statuses = {o.status for o in expected}
+    assert {"filling", "ok", "kept", "not_exciting"} <= statuses and sent > 5, statuses
+    for local, remote in zip(expected, outcomes, strict=True):
+        assert (remote.ok, remote.status, remote.reason, remote.doc, remote.markov) == (
+            local.ok, local.status, local.reason, local.doc, local.markov)
+        assert np.array_equal([remote.condition_number, remote.input_std], [local.condition_number, local.input_std],
+                              equal_nan=True)
+
+
+def test_an_estimate_stopped_by_a_larger_reference_is_made_again_when_the_decision_passes():
+    """``decide_outcome`` of an estimate that a reference std larger than the snapshot's stopped
+    (no model) estimates the window again: the outcome is the one of ``solve_snapshot``."""
+    v, y = hammerstein_record(3000, seed=4)
+    snapshot = feed_engine(replace(CONFIG, window=2000), v, y, chunk=3000).snapshot()
+    stopped = estimate_snapshot(replace(snapshot, reference_std=1e6))
+    assert stopped.result is None and not stopped.status
+    decided, direct = decide_outcome(snapshot, stopped), solve_snapshot(snapshot)
+    assert decided.ok and (decided.doc, decided.markov) == (direct.doc, direct.markov)
+
+
 def test_the_worker_keeps_the_published_model_of_the_epoch_for_the_keep_check(solver):
     """A window whose own estimate is poor (slow coloured output noise over few samples) keeps
     the model of a clean window: the worker uses the model it made in the same epoch, which never
@@ -168,7 +212,11 @@ def _messages(path: Path) -> list[tuple[str, int, bytes]]:
         return [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
 
 
-def test_replay_with_the_solver_process_writes_the_same_results(solver, tmp_path):
+@pytest.mark.parametrize("owner_estimates_from", [None, 0])
+def test_replay_with_the_solver_process_writes_the_same_results(solver, tmp_path, monkeypatch, owner_estimates_from):
+    """Also when the reading loop estimates every snapshot itself (``OWNER_ESTIMATES_FROM`` 0)."""
+    if owner_estimates_from is not None:
+        monkeypatch.setattr("hammer_ros.io.replay.OWNER_ESTIMATES_FROM", owner_estimates_from)
     excitation, response = parse_stream_spec("/cmd:data", "--input"), parse_stream_spec("/response:data", "--output")
     config = EngineConfig(sample_rate=100.0, window=2000)
     assert 2.0 * bag_duration(FLOAT64_BAG) > 100  # enough solves to overlap

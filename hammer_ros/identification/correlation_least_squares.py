@@ -29,6 +29,7 @@ Defaults (documented choices, the paper leaves them open):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from numpy.lib.stride_tricks import as_strided
@@ -317,13 +318,11 @@ def bai_two_stage_nls(
 
 
 def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict) -> IdentificationResult:
+    """The result of an estimate; picklable (its simulator a bound method or a partial, not a closure),
+    so that a ``SolverProcess`` can be handed a CLS estimate made elsewhere."""
     linear, nonlinearity = estimate.linear, estimate.nonlinearity
-
-    def simulate(v: np.ndarray) -> np.ndarray:
-        if nonlinearity is None:
-            return linear.linear.simulate(v)
-        return simulate_hammerstein(v, nonlinearity, linear.linear)
-
+    simulate = (linear.linear.simulate if nonlinearity is None
+                else partial(simulate_hammerstein, nonlinearity=nonlinearity, linear=linear.linear))
     return IdentificationResult(
         method=method,
         linear=linear.linear,

@@ -33,7 +33,7 @@ from ..errors import IdentificationError, UsageError
 from ..ros.dashboard import record_results
 from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
 from ..streaming.config import EngineConfig, EngineStats
-from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome
+from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome, estimate_snapshot, portable_estimate
 from ..streaming.solver_process import SolverProcess
 from .bags import (
     FLUSH_SAMPLES,
@@ -50,6 +50,9 @@ from .bags import (
 NODE_NAME = "hammer_ros"
 MAX_IN_FLIGHT = 64  # snapshots sent to a SolverProcess and not yet collected
 SOLVE_BATCH = 8  # snapshots per transfer to a SolverProcess (one wake-up of the worker for several solves)
+# Solves in flight from which the reading loop estimates the next snapshot itself (the worker behind:
+# more than the batch it solves and the one being filled); the worker only decides those.
+OWNER_ESTIMATES_FROM = 2 * SOLVE_BATCH
 
 
 class Publisher(Protocol):
@@ -163,10 +166,12 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             emit(engine.solve(), engine.stats, bag_values(read), bag_time)
             return
         snapshot = engine.snapshot()
-        solver.submit(snapshot)
+        help_worker = share and len(in_flight) >= OWNER_ESTIMATES_FROM
+        solver.submit(snapshot, estimate_snapshot(snapshot, solver.documents) if help_worker else None)
         in_flight.append((snapshot.stats, bag_values(read), bag_time))
         collect(wait=final or len(in_flight) > MAX_IN_FLIGHT)
 
+    share = solver is not None and portable_estimate(config)
     bag_start = next_solve = None
     bag_time = float("nan")
     complete = False

@@ -215,6 +215,7 @@ def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath, ne
         def scalar(data: bytes, pos: int, order: str):
             return float(struct.unpack_from(order + code, data, HEADER + _align(pos, size))[0])
         scalar.located, scalar.dtype = (lambda data, pos, order: (HEADER + _align(pos, size), 1)), dtype
+        scalar.single = True
         return scalar
     index = indices[0] if indices else None
 
@@ -293,7 +294,24 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
             pos = skip(data, pos, order)
         return read.located(data, pos, order)
 
+    # A message of the last one's length with the same bytes up to the field has the field at the
+    # same place with the same count; when the field ends that message (nothing after it to walk),
+    # it is read without walking: a bag's batch topic (Float64MultiArray, no header) costs one
+    # comparison of its first bytes per message. (length, those bytes, offset, count, dtype).
+    layout: list = []
+    single = getattr(read, "single", False)
+
+    def remember(data: bytes, order: str) -> None:
+        start, n = locate(data)
+        if end(data, 0, order) + HEADER == start + n * read.dtype.itemsize:
+            layout[:] = (len(data), bytes(data[:start]), start, n, read.dtype.newbyteorder(order))
+
     def extract(data: bytes) -> tuple[float | np.ndarray, float]:
+        if layout and len(data) == layout[0] and data[: layout[2]] == layout[1]:
+            values = np.frombuffer(data, layout[4], layout[3], layout[2])
+            if single:
+                return float(values[0]), 0.0
+            return (values if values.dtype == np.float64 else values.astype(np.float64)), 0.0
         if len(data) < HEADER:
             raise FieldError(f"field {path.text!r}: a {len(data)}-byte message")
         order = ">" if data[1] == 0 else "<"
@@ -304,9 +322,12 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
             values = read(data, pos, order)
             if end is not None and end(data, 0, order) > len(data) - HEADER:
                 raise struct.error("short")
+            if memoised:
+                remember(data, order)
             return values, (stamp(data, 0, order) if stamp is not None else 0.0)
         except struct.error:
             raise FieldError(f"field {path.text!r}: the message ends before it") from None
+    memoised = stamp is None and end is not None and hasattr(read, "located")
     if stamp is None and end is None and hasattr(read, "located"):
         extract.locate, extract.dtype = locate, read.dtype
     return extract

@@ -244,48 +244,95 @@ def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) ->
 
 
 
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """What a solve computes from the window alone (``estimate_snapshot``): the input's
+    excitation figures, and the method's model with its fit on the window (``result`` None when
+    a check stopped the solve before the method, ``status`` failed / exception when the method
+    did). ``decide_outcome`` makes the outcome of it with the published model and reference std
+    of the solve's turn. Picklable for the CLS methods (``SolverProcess``: the owner may estimate
+    a snapshot itself, the worker decides)."""
+
+    condition_number: float  # nan while filling
+    input_std: float
+    input_peak: float  # max |v|
+    result: IdentificationResult | None = None
+    doc: dict | None = None
+    fit: float | None = None  # the model's fit percent on the window (None: not finite)
+    status: str = ""  # '' (a model, or stopped by a check) | failed | exception
+    reason: str = ""
+    seconds: float = 0.0
+
+
 def window_problem(snapshot: EngineSnapshot) -> tuple[str, str, float, float]:
     """(status, reason, condition number, input std) of the checks before a solve: status
     ``filling`` (the window is not ``min_fill`` full) or ``not_exciting`` (the input is not
     persistently exciting, absolutely or relative to the published models), '' when a solve can
     be tried."""
-    cfg, v = snapshot.config, snapshot.v
+    cond, spread, peak = _excitation(snapshot)
+    return (*_window_status(snapshot, cond, spread, peak), cond, spread)
+
+
+def _needed_samples(snapshot: EngineSnapshot) -> int:
+    """The samples a solve needs, 0 when the window has them (its correlation sums are not empty)."""
+    cfg = snapshot.config
     needed = max(math.ceil(cfg.min_fill * cfg.window), 2 * cfg.tau_max + 2)
-    if v.size < needed or snapshot.weight <= 0:
-        return "filling", f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)", math.nan, math.nan
+    return needed if snapshot.v.size < needed or snapshot.weight <= 0 else 0
+
+
+def _excitation(snapshot: EngineSnapshot) -> tuple[float, float, float]:
+    """(condition number, std, max |v|) of the window's input; nan while it fills."""
+    cfg, v = snapshot.config, snapshot.v
+    if _needed_samples(snapshot):
+        return math.nan, math.nan, math.nan
     with np.errstate(all="ignore"):
         cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
-    spread = float(v.std())
-    if spread <= 1e-12 * max(1.0, float(np.abs(v).max())) or not cond <= PE_CONDITION_LIMIT:
-        return ("not_exciting", f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})",
-                cond, spread)
+    return cond, float(v.std()), float(np.abs(v).max())
+
+
+def _window_status(snapshot: EngineSnapshot, cond: float, spread: float, peak: float) -> tuple[str, str]:
+    """(status, reason) of ``window_problem`` from the figures of ``_excitation`` and the
+    snapshot's reference std."""
+    cfg, v = snapshot.config, snapshot.v
+    if needed := _needed_samples(snapshot):
+        return "filling", f"window {100 * v.size / cfg.window:.0f} % full (need {needed} samples)"
+    if spread <= 1e-12 * max(1.0, peak) or not cond <= PE_CONDITION_LIMIT:
+        return "not_exciting", f"not persistently exciting (input std {spread:.3g}, condition number {cond:.3g})"
     reference = snapshot.reference_std
     if spread < cfg.min_excitation * reference:
         return ("not_exciting", f"not persistently exciting (input std {spread:.3g} is "
                 f"{100 * spread / reference:.1f} % of the {reference:.3g} behind the published model, "
-                f"min_excitation {cfg.min_excitation:g})", cond, spread)
-    return "", "", cond, spread
+                f"min_excitation {cfg.min_excitation:g})")
+    return "", ""
 
 
 def solve_snapshot(snapshot: EngineSnapshot, document: bool = True) -> SolveOutcome:
-    """Identify the configured model on a snapshot (pure; may run in a worker thread).
+    """Identify the configured model on a snapshot (pure; may run in a worker thread):
+    ``decide_outcome`` of ``estimate_snapshot``.
 
     CLS (paper 000 sec. 3.1): step 1 on the snapshot's correlation sums, step 2 on the raw
     window; other methods: ``methods.identify`` on the raw window. Not ok (with the reason) when
-    the window is not ``min_fill`` full, the input is not persistently exciting or the method
-    fails on the data. ``document=False``: an ok outcome without ``doc`` and ``markov`` (what only the
-    outputs read; ``document_outcome`` adds them): the model's fit on the window, which the choice
-    against the published model needs, is computed alone."""
+    the window is not ``min_fill`` full, the input is not persistently exciting, the method
+    fails on the data or the published model fits the window clearly better. ``document=False``:
+    an ok outcome without ``doc`` and ``markov`` (what only the outputs read; ``document_outcome``
+    adds them): the model's fit on the window, which the choice against the published model
+    needs, is computed alone."""
+    return decide_outcome(snapshot, estimate_snapshot(snapshot, document), document)
+
+
+def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estimate:
+    """The part of ``solve_snapshot`` that needs the window only: the excitation checks (with
+    the snapshot's reference std: a smaller one than the solve's turn has only lets more windows
+    through) and, when they pass, the method's model and its fit (``doc`` with ``document``)."""
     started = time.perf_counter()
     cfg, v, y = snapshot.config, snapshot.v, snapshot.y
+    cond, spread, peak = _excitation(snapshot)
 
-    def outcome(ok, reason, result=None, doc=None, cond=float("nan"), status="ok", markov=()) -> SolveOutcome:
-        return SolveOutcome(ok, reason, result, doc, cond, time.perf_counter() - started, int(v.size), snapshot.stamp,
-                            status, spread, markov)
+    def estimate(**found) -> Estimate:
+        return Estimate(cond, spread, peak, seconds=time.perf_counter() - started, **found)
 
-    status, reason, cond, spread = window_problem(snapshot)
-    if status:
-        return outcome(False, reason, cond=cond, status=status)
+    if _window_status(snapshot, cond, spread, peak)[0]:
+        return estimate()
     try:
         with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
             if cfg.method in CLS_STRUCTURES:
@@ -301,19 +348,54 @@ def solve_snapshot(snapshot: EngineSnapshot, document: bool = True) -> SolveOutc
                 result = refine_result(result, v, y)
             doc = result.to_json(v, y) if document else None
             fit = doc.get("fit_percent") if document else fit_percent(y, result.simulate(v))
-            kept = _published_fits_better(snapshot.published, v, y, fit)
     except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
-        return outcome(False, f"{cfg.method}: {exc}", cond=cond, status="failed")
+        return estimate(status="failed", reason=f"{cfg.method}: {exc}")
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
-        return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", cond=cond,
-                       status="exception")
+        return estimate(status="exception", reason=f"{cfg.method}: internal error {type(exc).__name__}: {exc}")
+    return estimate(result=result, doc=doc, fit=fit)
+
+
+def portable_estimate(config: EngineConfig) -> bool:
+    """Whether the estimates of ``config``'s method pickle (CLS without refinement: its results
+    simulate through a partial), i.e. may be made in one process and decided in another."""
+    return config.method in CLS_STRUCTURES and not config.refine
+
+
+def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool = True) -> SolveOutcome:
+    """The outcome of ``estimate`` (of this snapshot's window, by ``estimate_snapshot`` with the
+    same ``document``) with the snapshot's published model and reference std: not exciting
+    relative to the reference, failed, kept (the published model fits the window clearly
+    better) or ok. An estimate stopped by a check that the snapshot's reference std passes (a
+    larger reference was behind it) is estimated again here."""
+    started = time.perf_counter()
+    cfg, v, y = snapshot.config, snapshot.v, snapshot.y
+    cond, spread = estimate.condition_number, estimate.input_std
+    status, reason = _window_status(snapshot, cond, spread, estimate.input_peak)
+    if not status and not estimate.status and estimate.result is None:
+        return decide_outcome(snapshot, estimate_snapshot(snapshot, document), document)
+
+    def outcome(ok, reason, result=None, doc=None, status="ok", markov=()) -> SolveOutcome:
+        return SolveOutcome(ok, reason, result, doc, cond, estimate.seconds + time.perf_counter() - started,
+                            int(v.size), snapshot.stamp, status, spread, markov)
+
+    if status:
+        return outcome(False, reason, status=status)
+    if estimate.status:
+        return outcome(False, estimate.reason, status=estimate.status)
+    result = estimate.result
+    try:
+        with np.errstate(all="ignore"):
+            kept = _published_fits_better(snapshot.published, v, y, estimate.fit)
+    except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
+        return outcome(False, f"{cfg.method}: {exc}", status="failed")
+    except Exception as exc:
+        return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", status="exception")
     finite = np.isfinite(result.linear.a).all() and np.isfinite(result.linear.b).all()
     if not finite:
-        return outcome(False, f"{cfg.method}: non-finite model coefficients", cond=cond, status="failed")
+        return outcome(False, f"{cfg.method}: non-finite model coefficients", status="failed")
     if kept:
-        return outcome(False, f"kept the published model: it fits the window better ({kept})", cond=cond,
-                       status="kept")
-    return outcome(True, "", result, doc, cond, markov=_markov(result, doc) if document else ())
+        return outcome(False, f"kept the published model: it fits the window better ({kept})", status="kept")
+    return outcome(True, "", result, estimate.doc, markov=_markov(result, estimate.doc) if document else ())
 
 
 def document_outcome(outcome: SolveOutcome, v: np.ndarray, y: np.ndarray) -> SolveOutcome:

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import UsageError
-from .engine import EngineSnapshot, SolveOutcome, document_outcome, solve_snapshot
+from .engine import EngineSnapshot, Estimate, SolveOutcome, decide_outcome, document_outcome, solve_snapshot
 
 CLOSE_TIMEOUT = 2.0  # s the worker gets to exit before it is killed
 # Batches sent and not yet answered, at most: the worker answers without waiting for the owner to read
@@ -108,7 +108,7 @@ def _serve(connection, documents: bool, ready) -> None:
             connection.send(answer)
             continue
         outcomes = []
-        for kept, sent in batch:
+        for kept, sent, estimate in batch:
             if sent.epoch != epoch:
                 epoch, published, reference, published_outcome = sent.epoch, None, 0.0, None
             v, y = sent.v, sent.y
@@ -116,7 +116,8 @@ def _serve(connection, documents: bool, ready) -> None:
                 tail = slice(last.v.size - kept, None)
                 v, y = np.concatenate([last.v[tail], v]), np.concatenate([last.y[tail], y])
             last = snapshot = replace(sent, v=v, y=y, published=published, reference_std=reference)
-            outcome = solve_snapshot(snapshot, documents)
+            outcome = (solve_snapshot(snapshot, documents) if estimate is None
+                       else decide_outcome(snapshot, estimate, documents))
             if outcome.ok:
                 published, reference = outcome.result, max(reference, outcome.input_std)
                 published_outcome = (outcome, v, y)
@@ -148,7 +149,8 @@ class SolverProcess:
         self.batch = batch
         self.max_sent = MAX_SENT_BATCHES * batch
         self._last: EngineSnapshot | None = None  # the last snapshot submitted (its whole window)
-        self._unsent: list[tuple[int, EngineSnapshot]] = []
+        self.documents = documents
+        self._unsent: list[tuple[int, EngineSnapshot, Estimate | None]] = []
         self._sent = 0  # solves sent whose outcomes have not been read
         self._outcomes: deque[SolveOutcome] = deque()  # read, not yet taken by ``result``
 
@@ -177,13 +179,15 @@ class SolverProcess:
         role = self._process.name.removeprefix("hammer_ros_")
         return f"the {role} process exited (exit code {self._process.exitcode})"
 
-    def submit(self, snapshot: EngineSnapshot) -> None:
+    def submit(self, snapshot: EngineSnapshot, estimate: Estimate | None = None) -> None:
         """Queue ``snapshot`` for the worker (its in-process ``published`` model stays here); a full
         batch is sent, which returns at once while the socket's buffer holds it, else when the
-        worker has read enough (the back-pressure of a worker that is behind)."""
+        worker has read enough (the back-pressure of a worker that is behind). ``estimate``: the
+        snapshot's ``estimate_snapshot(snapshot, self.documents)``, made by the owner (a CLS method's:
+        picklable), so that the worker only decides its outcome (``decide_outcome``)."""
         kept = self._kept(snapshot)
         self._unsent.append((kept, replace(snapshot, published=None, stats=None,  # the counters stay here
-                                           v=snapshot.v[kept:], y=snapshot.y[kept:])))
+                                           v=snapshot.v[kept:], y=snapshot.y[kept:]), estimate))
         self._last = snapshot
         if len(self._unsent) >= self.batch:
             self._send()
