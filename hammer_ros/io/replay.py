@@ -9,11 +9,13 @@ It prints nothing; ``ReplayResult.document()`` is the ``replay --json`` document
 With a ``SolverProcess`` the solves run in a worker process while the loop reads on: a solve's
 snapshot is submitted at its bag time (sent in batches of SOLVE_BATCH), and the outcomes that
 have arrived are collected in order (their messages written) whenever a solve is due, and all at
-the end. The messages, their stamps
-and counters are those of the in-process loop (the counters and read statistics are taken at
-the snapshot, and the worker holds the published model), so the output file is the same either
-way; only the wall time differs. A solver without documents (``SolverProcess(documents=False)``,
-when nothing is written or published) documents the last good model only, at the end.
+the end. The messages, their stamps and counters are those of the in-process loop (the counters
+and read statistics are taken at the snapshot, and the worker holds the published model), so
+the output file is the same either way; only the wall time differs. When the worker is behind
+(OWNER_ESTIMATES_FROM solves in flight), the loop estimates the next snapshot itself
+(``estimate_snapshot``, CLS methods) and the worker only decides its outcome: both cores solve,
+the outcomes unchanged. A solver without documents (``SolverProcess(documents=False)``, when
+nothing is written or published) documents the last good model only, at the end.
 """
 
 from __future__ import annotations
