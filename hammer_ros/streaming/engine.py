@@ -356,8 +356,9 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
 
 
 def portable_estimate(config: EngineConfig) -> bool:
-    """Whether the estimates of ``config``'s method pickle (CLS without refinement: its results
-    simulate through a partial), i.e. may be made in one process and decided in another."""
+    """Whether the estimates of ``config``'s method can cross the pipe to a ``SolverProcess`` (CLS
+    without refinement: its results simulate through a partial), i.e. may be made in one process
+    and decided in another."""
     return config.method in CLS_STRUCTURES and not config.refine
 
 

@@ -18,9 +18,9 @@ updated from each outcome exactly as ``StreamingEngine.record`` updates the engi
 snapshots thus gives the outcomes of in-process ``solve_snapshot`` with the engine's own state; a
 new epoch (new engine, new settings) starts without a published model, as the engine does. A
 snapshot may come with its ``estimate_snapshot`` made by the owner (replay's reading loop helps a
-worker that is behind, for the CLS methods, whose estimates pickle): the worker then only decides
-its outcome (``decide_outcome``: the excitation check against its reference std, the keep check
-against its published model), which gives the same outcome.
+worker that is behind, for the CLS methods, whose estimates can cross the pipe): the worker then
+only decides its outcome (``decide_outcome``: the excitation check against its reference std,
+the keep check against its published model), which gives the same outcome.
 Snapshots travel in batches (``batch`` per transfer: one serialisation, one system call and one
 wake-up of the worker for several solves; replay sends 8) and their outcomes come back the same
 way. The pipe's socket buffers (about 200 kB each way) are the queues: sending returns at once
