@@ -134,6 +134,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     started = time.perf_counter()
 
     in_flight: deque = deque()  # (counters at the snapshot, read statistics then, bag time) of solves in the solver
+    share = solver is not None and portable_estimate(config)  # the loop may estimate for a worker behind
 
     def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], bag_time: float) -> None:
         nonlocal last_ok, last
@@ -173,7 +174,6 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         in_flight.append((snapshot.stats, bag_values(read), bag_time))
         collect(wait=final or len(in_flight) > MAX_IN_FLIGHT)
 
-    share = solver is not None and portable_estimate(config)
     bag_start = next_solve = None
     bag_time = float("nan")
     complete = False

@@ -300,6 +300,7 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
     # comparison of its first bytes per message. (length, those bytes, offset, count, dtype).
     layout: list = []
     single = getattr(read, "single", False)
+    memoised = stamp is None and end is not None and hasattr(read, "located")
 
     def remember(data: bytes, order: str) -> None:
         start, n = locate(data)
@@ -327,7 +328,6 @@ def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: b
             return values, (stamp(data, 0, order) if stamp is not None else 0.0)
         except struct.error:
             raise FieldError(f"field {path.text!r}: the message ends before it") from None
-    memoised = stamp is None and end is not None and hasattr(read, "located")
     if stamp is None and end is None and hasattr(read, "located"):
         extract.locate, extract.dtype = locate, read.dtype
     return extract

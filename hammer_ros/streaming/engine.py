@@ -348,11 +348,19 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
                 result = refine_result(result, v, y)
             doc = result.to_json(v, y) if document else None
             fit = doc.get("fit_percent") if document else fit_percent(y, result.simulate(v))
-    except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
-        return estimate(status="failed", reason=f"{cfg.method}: {exc}")
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
-        return estimate(status="exception", reason=f"{cfg.method}: internal error {type(exc).__name__}: {exc}")
+        status, reason = _failure(cfg.method, exc)
+        return estimate(status=status, reason=reason)
     return estimate(result=result, doc=doc, fit=fit)
+
+
+def _failure(method: str, exc: Exception) -> tuple[str, str]:
+    """(status, reason) of an exception in a solve: ``failed`` when the method rejected the data
+    (HammerRosError, LinAlgError, ValueError), ``exception`` for anything else (a bug: reported,
+    counted, never fatal)."""
+    if isinstance(exc, (HammerRosError, np.linalg.LinAlgError, ValueError)):
+        return "failed", f"{method}: {exc}"
+    return "exception", f"{method}: internal error {type(exc).__name__}: {exc}"
 
 
 def portable_estimate(config: EngineConfig) -> bool:
@@ -387,10 +395,9 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
     try:
         with np.errstate(all="ignore"):
             kept = _published_fits_better(snapshot.published, v, y, estimate.fit)
-    except (HammerRosError, np.linalg.LinAlgError, ValueError) as exc:
-        return outcome(False, f"{cfg.method}: {exc}", status="failed")
     except Exception as exc:
-        return outcome(False, f"{cfg.method}: internal error {type(exc).__name__}: {exc}", status="exception")
+        status, reason = _failure(cfg.method, exc)
+        return outcome(False, reason, status=status)
     finite = np.isfinite(result.linear.a).all() and np.isfinite(result.linear.b).all()
     if not finite:
         return outcome(False, f"{cfg.method}: non-finite model coefficients", status="failed")
