@@ -11,6 +11,13 @@
    at 100 Hz for 60 s. ``/cmd`` std_msgs/msg/Float64; ``/joint_states`` sensor_msgs/msg/JointState
    (header stamp = sample time, log time 0.3-2 ms later): velocity[0] = the plant output + 1 %
    noise, position[0] its integral, effort[0] = F(v).
+3. ``servo_arm/`` (a rosbag2 directory with MCAP storage, written with ``rosbags``): a position
+   servo swinging a weighted arm (``hammer_ros.diagnosis.actuators.ServoArm``: P loop with a torque
+   limit, gravity, viscous and Coulomb friction, encoder of 4096 counts a turn) at 100 Hz, the four
+   trajectories of ``servo_trajectories`` run three times (72 s). ``/arm_controller/commands``
+   std_msgs/msg/Float64MultiArray (a ros2_control forward position controller's goals for
+   [shoulder_joint, elbow_joint]; the shoulder holds still); ``/joint_states`` sensor_msgs/msg/JointState
+   with both named joints (header stamp = sample time, log time 0.3-2 ms later).
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hammer_ros.diagnosis.actuators import ServoArm, servo_trajectories, simulate_servo
 from hammer_ros.identification.linear import LinearModel
 from hammer_ros.identification.simulate import add_noise, simulate_hammerstein
 from hammer_ros.io.bags import ResultWriter
@@ -92,16 +100,55 @@ def write_joint_state_bag(path: Path) -> None:
             writer.write(joints, int(t[k] + latency[k]), store.serialize_cdr(msg, JointState.__msgtype__))
 
 
-def main(out_dir: str = "bags") -> None:
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    write_float64_bag(out / "float64_cubic_g1.mcap")
-    target = out / "joint_state_saturation"
+def servo_arm_record(repeats: int = 3, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(goal, measured position) of the servo arm: the four trajectories run ``repeats`` times."""
+    arm = ServoArm()
+    goals = [u for _ in range(repeats) for u in servo_trajectories(RATE, 6.0, 1.0, seed)]
+    positions = [simulate_servo(arm, u, seed=seed + i, torque_noise=0.01) for i, u in enumerate(goals)]
+    return np.concatenate(goals), np.concatenate(positions)
+
+
+def write_servo_bag(path: Path) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    Commands, JointState = store.types["std_msgs/msg/Float64MultiArray"], store.types["sensor_msgs/msg/JointState"]
+    Layout, Dimension = store.types["std_msgs/msg/MultiArrayLayout"], store.types["std_msgs/msg/MultiArrayDimension"]
+    Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    goal, position = servo_arm_record()
+    shoulder = 0.25
+    t = START_NS + np.arange(goal.size, dtype=np.int64) * int(1e9 / RATE)
+    latency = np.random.default_rng(7).integers(300_000, 2_000_000, goal.size)
+    layout = Layout(dim=[Dimension(label="joints", size=2, stride=2)], data_offset=0)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        cmd = writer.add_connection("/arm_controller/commands", Commands.__msgtype__, typestore=store)
+        joints = writer.add_connection("/joint_states", JointState.__msgtype__, typestore=store)
+        for k in range(goal.size):
+            command = Commands(layout=layout, data=np.array([shoulder, goal[k]]))
+            writer.write(cmd, int(t[k]), store.serialize_cdr(command, Commands.__msgtype__))
+            stamp = Time(sec=int(t[k] // 1_000_000_000), nanosec=int(t[k] % 1_000_000_000))
+            velocity = (position[k] - position[k - 1]) * RATE if k else 0.0
+            msg = JointState(header=Header(stamp=stamp, frame_id=""), name=["shoulder_joint", "elbow_joint"],
+                             position=np.array([shoulder, position[k]]), velocity=np.array([0.0, velocity]),
+                             effort=np.array([0.0, 0.0]))
+            writer.write(joints, int(t[k] + latency[k]), store.serialize_cdr(msg, JointState.__msgtype__))
+
+
+def _replace_directory(target: Path, write) -> None:
     if target.exists():
         for f in target.iterdir():
             f.unlink()
         target.rmdir()
-    write_joint_state_bag(target)
+    write(target)
+
+
+def main(out_dir: str = "bags") -> None:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    write_float64_bag(out / "float64_cubic_g1.mcap")
+    _replace_directory(out / "joint_state_saturation", write_joint_state_bag)
+    _replace_directory(out / "servo_arm", write_servo_bag)
 
 
 if __name__ == "__main__":

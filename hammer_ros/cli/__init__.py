@@ -25,6 +25,7 @@ from .common import (
     load_data,
     options_from_args,
     positive_int,
+    split_choice,
 )
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
@@ -89,7 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("data", metavar="DATA")
     add_data_options(p)
     p.add_argument("--validation", default=None, metavar="DATA2", help="validation record (default: --split)")
-    p.add_argument("--split", type=float, default=0.7, help="estimation fraction of DATA (default 0.7)")
+    p.add_argument("--split", type=split_choice, default=0.7, metavar="F|auto",
+                   help="estimation fraction of DATA (default 0.7: validation on the last 30 %%), or auto: an "
+                        "estimation part whose input range covers the validation part's, where the record allows")
     p.add_argument("--order", type=positive_int, default=None, help="order of the nominal linear block")
     p.add_argument("--delay", type=positive_int, default=None, help="relative degree (default: estimated)")
     p.add_argument("--report", default=None, metavar="FILE.html", help="write a self-contained HTML report")

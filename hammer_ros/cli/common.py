@@ -39,6 +39,16 @@ def _partition(text: str) -> tuple[float, ...]:
 
 
 
+def split_choice(text: str) -> float | str:
+    """--split: the estimation fraction, or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a fraction between 0 and 1 or 'auto' (got {text!r})") from None
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)

@@ -9,6 +9,7 @@ import sys
 import numpy as np
 
 from ..diagnosis.causes import EXTENSION, MEANING
+from ..diagnosis.coverage import auto_split
 from ..diagnosis.diagnose import Diagnosis, diagnose
 from ..diagnosis.split import Split, check_split, split_record
 from ..errors import IdentificationError, UsageError
@@ -24,6 +25,8 @@ def load_split(args: argparse.Namespace) -> Split:
         split = Split(record.v, record.y, validation.v, validation.y, continuous=False)
         check_split(split)
         return split
+    if args.split == "auto":
+        return auto_split(record.v, record.y)
     return split_record(record.v, record.y, args.split)
 
 
@@ -58,6 +61,10 @@ def summary(d: Diagnosis) -> str:
     lines = [f"baseline  {b.structure}: validation rms {b.rms:.4g}, fit {b.fit_percent:.1f} %"
              + (f", input dead time {dead_time} samples" if dead_time else ""),
              f"cause     {d.cause} (confidence {d.confidence:.2f}): {MEANING[d.cause]}"]
+    if d.split_note:
+        lines.insert(0, f"split     {d.split_note}")
+    if d.coverage and d.coverage["judged_samples"] < d.coverage["validation_samples"]:
+        lines.insert(1 if d.split_note else 0, f"coverage  {d.coverage['judged_on']}")
     if d.extended is not None:
         e = d.extended
         lines.append(f"extended  {d.steps[0].structure if d.steps else EXTENSION[d.cause]}")

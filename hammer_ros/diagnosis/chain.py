@@ -36,7 +36,6 @@ from scipy import signal
 from scipy.optimize import minimize_scalar
 
 from ..identification.regression import solve_least_squares
-from ..identification.result import rms_error
 from ..identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
 from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test, trend_test
@@ -103,16 +102,19 @@ def drifts(split: Split, model: ExtendedModel, skip: int) -> bool:
     if not split.continuous:
         return False
     x = model.simulate(split.v_all)
-    t_value, critical = trend_test(split.y_all - x, np.column_stack([np.ones_like(x), x]), skip)
+    x = split.judged_record(x[: split.n_est], x[split.n_est :])
+    y = split.judged_record(split.y_est, split.y_val)
+    t_value, critical = trend_test(y - x, np.column_stack([np.ones_like(x), x]), skip)
     return t_value > critical
 
 
 def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: int) -> Chain:
     """The chain that starts with the extension ``first`` (see the module docstring)."""
-    first_rms = rms_error(split.y_val, first.validation_output)
+    first_rms = split.validation_rms(first.validation_output)
     steps = [Step(first.cause, first.structure, first_rms, baseline_rms / max(first_rms, 1e-300))]
     models = [first]
     val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
+    rows = split.judged_rows[split.judged_rows >= val_skip]
     failures: list[tuple[str, str]] = []
 
     def stop(reason: str) -> Chain:
@@ -130,7 +132,7 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
         supported = []
         for cause, columns in follow_up_signatures(split.v_val, x_val).items():
             f_value, critical, _ = partial_f_test(e_val, np.column_stack([np.ones_like(x_val), x_val]), columns,
-                                                  val_skip)
+                                                  rows)
             if f_value > critical:
                 supported.append(cause)
         if drifts(split, model, skip):
@@ -148,7 +150,7 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
                 fits[cause] = fitted
             else:
                 failures.append((cause, f"step {len(steps) + 1}: its simulation is not finite on the validation input"))
-        gains = {c: steps[-1].rms / max(rms_error(split.y_val, f.validation_output), 1e-300) for c, f in fits.items()}
+        gains = {c: steps[-1].rms / max(split.validation_rms(f.validation_output), 1e-300) for c, f in fits.items()}
         if not gains:
             return stop(f"no follow-up could be fitted for {', '.join(supported)}")
         best = max(gains, key=gains.get)
@@ -156,7 +158,7 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
             return stop(f"the best further step ({best}) gains x{gains[best]:.3f} on validation data, less than "
                         f"x{MIN_STEP_GAIN}")
         fitted = fits[best]
-        steps.append(Step(best, fitted.structure, rms_error(split.y_val, fitted.validation_output), gains[best]))
+        steps.append(Step(best, fitted.structure, split.validation_rms(fitted.validation_output), gains[best]))
         models.append(fitted)
 
 

@@ -28,9 +28,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
 
 from ..identification.result import fit_percent, rms_error, strict_json
 from .chain import Chain, Step, extend_chain
+from .coverage import input_coverage, judged_split
 from .evidence import (
     CauseTest,
     LineTest,
@@ -43,7 +45,7 @@ from .evidence import (
 from .extensions import EXTENSIONS, NUMERICAL_FAILURES, Context, ExtendedModel, failure_reason
 from .hammerstein import HammersteinModel, fit_baseline, select_dead_time, transient_samples
 from .residual_tests import CorrelationTest, Evidence, residual_tests
-from .split import Split, split_record
+from .split import MIN_SAMPLES, Split, split_record
 
 MIN_GAIN = 1.05
 BLIND_MIN_GAIN = 1.15  # without a significant signature, a cause must gain this much
@@ -52,6 +54,8 @@ BLIND_MIN_GAIN = 1.15  # without a significant signature, a cause must gain this
 BLIND_CAUSES = ("output_feedback", "output_nonlinearity", "input_dynamics", "parallel_path", "unmodeled_dynamics")
 MAX_CANDIDATES = 5  # of the 8 causes with a signature test
 RELATIVE_SHARE = 0.2
+TIE_BLOCKS = 20  # blocks of the validation errors for the test of two candidates' difference
+TIED_CONFIDENCE = 0.5  # factor of the confidence when another candidate is within noise of the named one
 
 
 @dataclass(frozen=True)
@@ -81,6 +85,8 @@ class Diagnosis:
     steps: tuple[Step, ...] = ()
     chain_stopped: str | None = None
     not_fitted: tuple[tuple[str, str], ...] = ()  # (cause, one-line reason) of every extension tried in vain
+    coverage: dict = field(default_factory=dict)  # ``InputCoverage.to_json``: what the validation could judge
+    split_note: str = ""  # how the record was split (``--split auto``)
 
     def to_json(self) -> dict:
         doc = {
@@ -94,7 +100,10 @@ class Diagnosis:
             "steps": [s.to_json() for s in self.steps],
             "chain_stopped": self.chain_stopped,
             "not_fitted": [{"cause": c, "reason": r} for c, r in self.not_fitted],
+            "input_coverage": self.coverage,
         }
+        if self.split_note:
+            doc["split"] = self.split_note
         return strict_json(doc)
 
 
@@ -119,8 +128,10 @@ class DiagnosisRun:
         return None if self.chain is None else self.chain.final
 
 
-def _score(structure: str, y: np.ndarray, y_sim: np.ndarray) -> ModelScore:
-    return ModelScore(structure, rms_error(y, y_sim), fit_percent(y, y_sim))
+def _score(structure: str, split: Split, y_sim: np.ndarray) -> ModelScore:
+    """RMS and fit of a validation output on the judged validation samples."""
+    rows = split.judged_rows
+    return ModelScore(structure, rms_error(split.y_val[rows], y_sim[rows]), fit_percent(split.y_val[rows], y_sim[rows]))
 
 
 def diagnose(split: Split, order: int | None = None, delay: int | None = None) -> DiagnosisRun:
@@ -131,24 +142,29 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     split = split.delayed_input(dead_time)
     base = fit_baseline(split.v_est, split.y_est, order, delay)
     skip = transient_samples(base.linear.poles, split.n_est)
+    coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5))
+    judgeable = coverage.passed or int(np.count_nonzero(coverage.covered)) >= MIN_SAMPLES
+    if judgeable:
+        split = judged_split(split, coverage)
     x_est = base.simulate(split.v_est)
     x_val = split.validation_output(base.simulate)
     e_val = split.y_val - x_val
     val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
+    rows = split.judged_rows[split.judged_rows >= val_skip]
 
-    correlation = tuple(residual_tests(split.v_val[val_skip:], split.y_val[val_skip:], e_val[val_skip:]))
+    correlation = tuple(residual_tests(split.v_val[rows], split.y_val[rows], e_val[rows]))
     lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
-    x_all = np.concatenate([x_est, x_val])
-    windows = windowed_variation(split.y_all, x_all, skip)
+    windows = windowed_variation(split.judged_record(split.y_est, split.y_val),
+                                 split.judged_record(x_est, x_val), skip)
     shape = correlation_shape_test(split.v_est, split.y_est)
-    cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, val_skip)) + (
+    cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, rows)) + (
         lines.cause_test(), windows.cause_test()) + ((shape,) if shape is not None else ())
 
     ctx = Context(split, base, lines, windows)
     supported = sorted((t for t in cause_tests if t.supports), key=lambda t: -t.explained)[:MAX_CANDIDATES]
     if supported:  # causes whose signature explains little next to the best one are not fitted
         supported = [t for t in supported if t.explained >= RELATIVE_SHARE * supported[0].explained]
-    baseline_score = _score("hammerstein", split.y_val, x_val)
+    baseline_score = _score("hammerstein", split, x_val)
     extensions: dict[str, ExtendedModel] = {}
     gains: dict[str, float] = {}
     not_fitted: dict[str, str] = {}
@@ -167,9 +183,9 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
                 not_fitted[candidate] = "its simulation is not finite on the validation input"
                 continue
             extensions[candidate] = extended
-            gains[candidate] = baseline_score.rms / max(rms_error(split.y_val, extended.validation_output), 1e-300)
+            gains[candidate] = baseline_score.rms / max(split.validation_rms(extended.validation_output), 1e-300)
 
-    fit([t.cause for t in supported])
+    fit(list(dict.fromkeys(t.cause for t in supported)))
     found_by = "signature"
     cause = max(gains, key=gains.get) if gains else "none"
     if cause != "none" and gains[cause] < MIN_GAIN:
@@ -181,12 +197,23 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         if blind:
             cause = max(blind, key=blind.get)
             found_by = "a search of every extension (no significant signature led to a gain; the residual tests failed)"
-    evidence = tuple(t.evidence() for t in correlation) + tuple(t.evidence for t in cause_tests)
-    confidence = _confidence(cause, gains, evidence)
+    # the candidates the validation data cannot tell from the named one: said (``within_noise_of``, a low
+    # confidence), not hidden behind a few per cent of RMS
+    tied = _within_noise(split, extensions, gains, cause) if cause != "none" else []
+    coverage_json = coverage.to_json()
+    if not judgeable:  # hardly a validation sample in the estimation range: nothing to name a cause from
+        cause, found_by = "none", ""
+        coverage_json["judged_on"] += (f"; only {int(np.count_nonzero(coverage.covered))} validation samples are "
+                                       f"covered (fewer than {MIN_SAMPLES}): every sample is judged and no cause is "
+                                       "named")
+    evidence = (coverage.evidence(), *(t.evidence() for t in correlation), *(t.evidence for t in cause_tests))
+    confidence = _confidence(cause, gains, evidence) * (TIED_CONFIDENCE if tied else 1.0)
     chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
     final = None if chain is None else chain.final
-    extended_score = None if final is None else _score(final.structure, split.y_val, final.validation_output)
+    extended_score = None if final is None else _score(final.structure, split, final.validation_output)
     details = {} if chain is None else {**extensions[cause].details, "found_by": found_by}
+    if chain is not None and tied:
+        details["within_noise_of"] = tied
     if chain is not None and len(chain.models) > 1:
         details["further_steps"] = [{"cause": m.cause, **m.details} for m in chain.models[1:]]
     diagnosis = Diagnosis(
@@ -205,8 +232,36 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         steps=() if chain is None else chain.steps,
         chain_stopped=None if chain is None else chain.stopped,
         not_fitted=tuple(not_fitted.items()) + (() if chain is None else chain.not_fitted),
+        coverage=coverage_json,
+        split_note=split.note,
     )
     return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions, chain)
+
+
+def _within_noise(split: Split, extensions: dict[str, ExtendedModel], gains: dict[str, float],
+                  best: str) -> list[str]:
+    """The other candidates (gain >= MIN_GAIN) whose validation errors the best one's do not beat
+    significantly: over TIE_BLOCKS consecutive blocks of the judged validation samples, the log
+    ratio of the two models' mean squared errors in each block is t-tested against 0 (block means
+    are nearly independent when the errors are slowly correlated; the log ratio keeps a few blocks
+    of large errors, a step of the input, from deciding alone), |t| below the two-sided 95 % point."""
+    rows = split.judged_rows
+    blocks = min(TIE_BLOCKS, rows.size // 10)
+    if blocks < 4:
+        return []
+    error = {c: (split.y_val - m.validation_output)[rows] for c, m in extensions.items()}
+    critical = float(stats.t.ppf(0.975, blocks - 1))
+    tied = []
+    for other, gain in sorted(gains.items(), key=lambda kv: -kv[1]):
+        if other == best or gain < MIN_GAIN:
+            continue
+        floor = 1e-12 * float(np.mean(error[other] ** 2)) + 1e-300
+        ratios = np.array([np.log((np.mean(a**2) + floor) / (np.mean(b**2) + floor)) for a, b in
+                           zip(np.array_split(error[best], blocks), np.array_split(error[other], blocks))])
+        spread = float(np.std(ratios, ddof=1))
+        if spread > 0 and abs(float(np.mean(ratios))) / (spread / np.sqrt(blocks)) < critical:
+            tied.append(other)
+    return tied
 
 
 def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, ...]) -> float:

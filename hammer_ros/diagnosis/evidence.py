@@ -7,6 +7,7 @@ Each cause leaves its own first-order signature in the baseline's simulation err
 |---|---|
 | output_nonlinearity | static functions of x: hinges (x - k_j)_+ at quantiles of x |
 | output_feedback | the same hinges passed through G: G[(x - k_j)_+] (y = G[F(v) - h(y)]) |
+| output_feedback (servo) | G[hinges of the loop error v - x and of dx] beyond those: y = G[f(v - y) - h(y) - phi(dy)] |
 | parallel_path | linear dynamics of v itself: lags 0..11 and first-order filters of v |
 | unmodeled_dynamics | linear dynamics of F(v): lags 0..11 and first-order filters of F(v) |
 | backlash | G[F'(v) s], s = sign of the last input change (play shifts v by -w/2 s) |
@@ -75,13 +76,22 @@ def _ar_filter(e: np.ndarray, order: int) -> np.ndarray:
     return np.concatenate([[1.0], -theta])
 
 
-def partial_f_test(e: np.ndarray, nuisance: np.ndarray, columns: np.ndarray, skip: int) -> tuple[float, float, float]:
-    """(F, 99 % critical value, explained share) for e ~ [nuisance, columns] against e ~ nuisance.
+def test_rows(size: int, rows: int | np.ndarray) -> np.ndarray:
+    """The samples a test uses: from sample ``rows`` on (an int), or the given indices (the judged
+    validation samples of ``coverage``)."""
+    return np.arange(rows, size) if isinstance(rows, (int, np.integer)) else np.asarray(rows)
+
+
+def partial_f_test(e: np.ndarray, nuisance: np.ndarray, columns: np.ndarray,
+                   skip: int | np.ndarray) -> tuple[float, float, float]:
+    """(F, 99 % critical value, explained share) for e ~ [nuisance, columns] against e ~ nuisance
+    on the samples ``test_rows(skip)``.
 
     F is computed on the AR-prewhitened residual and regressors; the explained share is the
     drop of the residual energy (raw, not whitened) due to ``columns``.
     """
-    e, nuisance, columns = e[skip:], nuisance[skip:], columns[skip:]
+    rows = test_rows(np.size(e), skip)
+    e, nuisance, columns = e[rows], nuisance[rows], columns[rows]
     base_fit = nuisance @ solve_least_squares(nuisance, e)
     full = np.column_stack([nuisance, columns])
     raw0 = float(np.sum((e - base_fit) ** 2))
@@ -140,8 +150,10 @@ def last_direction(v: np.ndarray) -> np.ndarray:
     return step[np.maximum.accumulate(index)]
 
 
-def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np.ndarray, skip: int) -> list[CauseTest]:
-    """The regression-signature tests on one record (v input, x baseline output, e = y - x)."""
+def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np.ndarray,
+                    skip: int | np.ndarray) -> list[CauseTest]:
+    """The regression-signature tests on one record (v input, x baseline output, e = y - x), on
+    the samples ``test_rows(skip)``."""
     def through_g(columns: np.ndarray) -> np.ndarray:
         return signal.lfilter(model.b, model.a, columns, axis=0)
 
@@ -161,6 +173,13 @@ def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np
     for cause, (name, columns) in signatures.items():
         f_value, critical, explained = partial_f_test(e, nuisance, columns, skip)
         tests.append(CauseTest(Evidence(f"{name} (F)", f_value, critical, f_value <= critical, cause), explained))
+    # a loop of its own around the plant (a servo): y = G[f(v - y) - h(y) - phi(dy)] leaves, to first order,
+    # G[static maps of the loop error v - x and of the output's difference dx] beyond G[map of x]
+    loop = through_g(np.column_stack([hinges(v - x), hinges(np.diff(x, prepend=x[0]))]))
+    f_value, critical, explained = partial_f_test(e, np.column_stack([nuisance, signatures["output_feedback"][1]]),
+                                                  loop, skip)
+    tests.append(CauseTest(Evidence("residual vs G[maps of the loop error u - x and of dx] beyond G[map of x] (F)",
+                                    f_value, critical, f_value <= critical, "output_feedback"), explained))
     # input dynamics y = G2[f(L v)]: f(L v) = f(v + (L - 1) v) ~ f(v) + f'(v) (L - 1) v, so the residual
     # carries G[f'(v) (L_p - 1) v] (slope of the baseline map, and steps at quantiles of v for a map
     # the baseline got wrong) beyond G[static map of v]. The explained share is that of all the static

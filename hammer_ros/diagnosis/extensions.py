@@ -51,6 +51,7 @@ from .hammerstein import (
     refine_hammerstein,
     transient_samples,
 )
+from .servo_loop import fit_servo_loop
 from .split import INITIAL_SAMPLES, Split, rest_input
 from .storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .wiener_hammerstein import (
@@ -375,6 +376,8 @@ SCREEN_ITERATIONS = 6  # LM iterations of every screened start before the best o
 FEEDBACK_ITERATIONS = 40
 STORAGE_CASCADE = ("two storages in series: x1+ = x1 + f(u) - h1(x1), x2+ = x2 + g(x1+) - h2(x2), y = x2 "
                    "(non-linear feedback of both levels)")
+SERVO_LOOP = ("servo loop: y = G[f(u - y) - h(y) - phi(dy)], G a double integrator (the controller's map on the "
+              "loop error, gravity on the output, friction on its difference)")
 KEPT_STARTS = 2  # starts refined to the end
 KEPT_CASCADES = 4  # storages in series refined to the end on a short record (all screened there); the best
 # whose rest states are plausible is kept
@@ -549,6 +552,48 @@ def _random_denominator(rng: np.random.Generator, poles: np.ndarray) -> np.ndarr
 
 
 def extend_output_feedback(ctx: Context) -> ExtendedModel:
+    """The output fed back through static maps, in the form that fits the estimation data best
+    by its simulation-error BIC (``bic``, ``parameters`` in the details): the non-linear feedback
+    loop y = G[f(v) - h(y)] or two storages in series (``feedback_loop_model``), or the servo loop
+    y = G[f(v - y) - h(y) - phi(dy)] of a system inside its own position loop (``servo_loop``: the
+    map on the loop error, friction on the output's difference). Either may fail on a record;
+    the other is then the extension."""
+    s = ctx.split
+    forms, failures = [], []
+    for form in (feedback_loop_model, servo_loop_model):
+        try:
+            forms.append(form(ctx))
+        except NUMERICAL_FAILURES as error:
+            failures.append(failure_reason(error))
+    if not forms:
+        raise NotFitted("; ".join(failures))
+    skip = min(ctx.skip, s.n_est // 5)
+
+    def score(model: ExtendedModel) -> float:
+        return bic(s.y_est[skip:], model.simulate(s.v_est)[skip:], model.details["parameters"])
+
+    return min(forms, key=score)
+
+
+def servo_loop_model(ctx: Context) -> ExtendedModel:
+    """The servo loop (``servo_loop.fit_servo_loop``) as an extension of ``output_feedback``."""
+    s = ctx.split
+    try:
+        fit = fit_servo_loop(s.v_est, s.y_est)
+    except IdentificationError as error:
+        raise NotFitted(f"servo loop: {error}") from error
+    simulate = fit.simulate
+    output = s.validation_output(simulate)
+    f, h, phi = fit.layout.maps(fit.theta)
+    e = s.v_est - s.y_est
+    maps = (map_plot("f (controller on the loop error u - y)", f, e),
+            map_plot("h (output feedback: gravity)", h, s.y_est),
+            map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))
+    details = {**fit.details(s.v_est, s.y_est), "parameters": fit.parameter_count}
+    return ExtendedModel("output_feedback", SERVO_LOOP, output, details, maps, simulate)
+
+
+def feedback_loop_model(ctx: Context) -> ExtendedModel:
     """Hammerstein / non-linear feedback y = G[f(v) - h(y)] (paper 001, eq. 2 and sec. 4.3), f on
     the baseline's breakpoints and h on quantiles of y, refined on the simulation error of the
     whole estimation record (the loop runs in the compiled kernel of ``compiled_loops``).
@@ -664,7 +709,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     tails, simulate, output = _stable_tails(s, y, simulator, _choose_tails(theta, v, y, fit, cost), "loop")
     f_map, h_map = with_tails(f_fit, *tails[0], *tails[1]), with_tails(h_fit, *tails[2], *tails[3])
     maps = (map_plot("f (input map)", f_map, v), map_plot("h (feedback map; its linear part is in A)", h_map, y))
-    details = {"form": "loop", "feedback_breakpoints": h_part.tolist(), "starts": len(starts),
+    details = {"form": "loop", "parameters": theta.size, "feedback_breakpoints": h_part.tolist(), "starts": len(starts),
                "initial_input": float(theta[0]),
                "a": a.tolist(), "b": b.tolist(),
                "tails": _tails_details(tails), **_order_details(replace(base, a=a, b=b))}
@@ -693,7 +738,8 @@ def _storage_cascade_model(split: Split, layout: CascadeLayout, run: Callable[[n
             map_plot("h1 (outflow of the first storage)", h1, levels),
             map_plot("g (inflow of the second storage, from the first level)", g, levels),
             map_plot("h2 (outflow of the second storage: the output's feedback)", h2, y))
-    details = {"form": "storage_cascade", "initial_input": float(theta[0]), "delay": layout.delay,
+    details = {"form": "storage_cascade", "parameters": theta.size, "initial_input": float(theta[0]),
+               "delay": layout.delay,
                "first_level_breakpoints": layout.x_part.tolist(), "feedback_breakpoints": layout.y_part.tolist(),
                "tails": _tails_details(tails)}
     return ExtendedModel("output_feedback", STORAGE_CASCADE, output, details, maps, simulate)
@@ -1043,8 +1089,8 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
         raise NotFitted(f"Wiener-Hammerstein: {error}") from error
     model = fit.model
     output = s.validation_output(model.simulate)
-    rms = max(rms_error(s.y_val, output), 1e-300)
-    ratio = rms_error(s.y_val, s.validation_output(nested.model.simulate)) / rms
+    rms = max(s.validation_rms(output), 1e-300)
+    ratio = s.validation_rms(s.validation_output(nested.model.simulate)) / rms
     if not ratio >= NESTED_MARGIN:
         raise NotFitted(f"the Hammerstein model nested in it (G1 = 1), refined the same way, fits the validation data "
                         f"as well (x{ratio:.3f}): no filter before the map is needed")
@@ -1053,7 +1099,7 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
                         "all dynamics are before the map (a Wiener model, an output map)",
                         suggests="output_nonlinearity")
     if not isinstance(ctx.nested_wiener, Exception):
-        wiener_ratio = rms_error(s.y_val, s.validation_output(ctx.nested_wiener.model.simulate)) / rms
+        wiener_ratio = s.validation_rms(s.validation_output(ctx.nested_wiener.model.simulate)) / rms
         if not wiener_ratio >= NESTED_MARGIN:
             raise NotFitted(f"the Wiener model nested in it (G2 = 1), refined the same way, fits the validation data "
                             f"as well (x{wiener_ratio:.3f}): the map sits after the dynamics (an output map)",

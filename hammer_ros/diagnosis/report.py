@@ -65,12 +65,20 @@ def render_report(run: DiagnosisRun, title: str = "hammer-ros diagnosis") -> str
     return "\n".join(parts)
 
 
+def _coverage(d: Diagnosis) -> str:
+    """How the record was split, and which validation samples the models are judged on."""
+    notes = [d.split_note] if d.split_note else []
+    if d.coverage:
+        notes.append(f"Input coverage: {d.coverage['judged_on']}.")
+    return "".join(f"<p class='small'>{html.escape(n)}</p>" for n in notes)
+
+
 def _verdict(run: DiagnosisRun) -> str:
     d = run.diagnosis
     if d.cause == "none":
         text = (f"<b>No cause found</b> (confidence {d.confidence:.2f}): {MEANING['none']}. "
                 f"Baseline validation fit {d.baseline.fit_percent:.1f} %, RMS {d.baseline.rms:.4g}.")
-        return f"<div class='verdict none'>{text}</div>"
+        return f"<div class='verdict none'>{text}</div>{_coverage(d)}"
     text = (f"<b>Cause: {d.cause}</b> (confidence {d.confidence:.2f}): {html.escape(MEANING[d.cause])}.<br>"
             f"Extended model: {html.escape(d.steps[0].structure if d.steps else EXTENSION[d.cause])}.<br>"
             f"Validation RMS {d.baseline.rms:.4g} &rarr; {d.extended.rms:.4g} (gain {d.gain:.2f}), fit "
@@ -78,7 +86,7 @@ def _verdict(run: DiagnosisRun) -> str:
     if len(d.steps) > 1:
         chain = " &rarr; ".join(f"{html.escape(s.cause)} (x{s.gain:.2f})" for s in d.steps)
         text += f"<br>Compound explanation: {chain}."
-    return f"<div class='verdict'>{text}</div>"
+    return f"<div class='verdict'>{text}</div>{_coverage(d)}"
 
 
 def _chain(run: DiagnosisRun) -> str:
@@ -182,6 +190,11 @@ def _validation_figure(run: DiagnosisRun):
         label = f"extended: {d.cause} (RMS {d.extended.rms:.3g})"
         top.plot(k, out[part], color="tab:blue", lw=1.0, ls="--", label=label)
         bottom.plot(k, (s.y_val - out)[part], color="tab:blue", lw=0.8, label="extended error")
+    if s.judged is not None:  # the samples not judged: their input (or a recent one) is outside the estimation range
+        for i, (first, last) in enumerate(_runs(~s.judged[part])):
+            top.axvspan(k[first], k[last], color="0.85", lw=0,
+                        label=None if i else "not judged: input outside the estimation range")
+            bottom.axvspan(k[first], k[last], color="0.85", lw=0)
     top.set_ylabel("output")
     top.legend(loc="upper right", fontsize=8)
     bottom.set_ylabel("error")
@@ -191,6 +204,12 @@ def _validation_figure(run: DiagnosisRun):
         top.set_title(f"first {EXCERPT} of {s.v_val.size} validation samples", fontsize=9)
     fig.tight_layout()
     return fig
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index of every run of True in ``mask``."""
+    edges = np.diff(np.concatenate([[0], mask.astype(int), [0]]))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1))
 
 
 def _correlation_figure(run: DiagnosisRun):

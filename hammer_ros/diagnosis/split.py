@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -28,6 +28,23 @@ class Split:
     v_val: np.ndarray
     y_val: np.ndarray
     continuous: bool
+    judged: np.ndarray | None = None  # the validation samples a model is judged on (None: all; ``coverage``)
+    note: str = ""  # how the record was split, in plain words (``auto_split``)
+
+    @property
+    def judged_rows(self) -> np.ndarray:
+        """Indices of the validation samples a model is judged on."""
+        return np.arange(self.v_val.size) if self.judged is None else np.flatnonzero(self.judged)
+
+    def validation_rms(self, output: np.ndarray) -> float:
+        """RMS of y_val - output over the judged validation samples."""
+        rows = self.judged_rows
+        return float(np.sqrt(np.mean((self.y_val[rows] - np.asarray(output)[rows]) ** 2)))
+
+    def judged_record(self, estimation: np.ndarray, validation: np.ndarray) -> np.ndarray:
+        """A signal over the whole record (its estimation and validation parts) without the
+        validation samples that are not judged."""
+        return np.concatenate([estimation, np.asarray(validation)[self.judged_rows]])
 
     @property
     def n_est(self) -> int:
@@ -56,15 +73,15 @@ class Split:
             return self
         if self.continuous:
             v = held_back(self.v_all, samples)
-            return Split(v[: self.n_est], self.y_est, v[self.n_est :], self.y_val, True)
-        return Split(held_back(self.v_est, samples), self.y_est, held_back(self.v_val, samples), self.y_val, False)
+            return replace(self, v_est=v[: self.n_est], v_val=v[self.n_est :])
+        return replace(self, v_est=held_back(self.v_est, samples), v_val=held_back(self.v_val, samples))
 
     def estimation_tail(self, samples: int) -> Split:
         """The same split with only the last ``samples`` estimation samples (to bound the cost
         of slow fits on long records); validation unchanged."""
         if samples >= self.n_est:
             return self
-        return Split(self.v_est[-samples:], self.y_est[-samples:], self.v_val, self.y_val, self.continuous)
+        return replace(self, v_est=self.v_est[-samples:], y_est=self.y_est[-samples:])
 
 
 def held_back(v: np.ndarray, samples: int) -> np.ndarray:

@@ -40,7 +40,7 @@ def _kernel(name: str):
         try:
             _KERNELS.update(_compile())
         except ImportError:
-            _KERNELS.update(feedback=None, cascade=None, play=None)
+            _KERNELS.update(feedback=None, cascade=None, play=None, servo=None)
     return _KERNELS[name]
 
 
@@ -52,7 +52,8 @@ def _compile() -> dict:
     scope = {**globals(), "_map_value": jit(_map_value)}
     return {"feedback": jit(types.FunctionType(_feedback_core.__code__, scope, "_feedback_core")),
             "cascade": jit(types.FunctionType(_cascade_core.__code__, scope, "_cascade_core")),
-            "play": jit(_play_core)}
+            "play": jit(_play_core),
+            "servo": jit(types.FunctionType(_servo_core.__code__, scope, "_servo_core"))}
 
 
 def feedback_loop(forced: np.ndarray, b_past: np.ndarray, a_past: np.ndarray, knots: np.ndarray,
@@ -189,3 +190,50 @@ def _play_core(v, half, initial, out):
         elif value + half < z:
             z = value + half
         out[k] = z
+
+
+def servo_loop(u: np.ndarray, y0: float, error_map, gravity_map, friction_map, coulomb: float = 0.0,
+               compiled: bool | None = None) -> np.ndarray:
+    """y(k) of a system inside its own position loop, from rest at y0 (y(0) = y(-1) = y0):
+
+        y(k+1) = y(k) + w(k) + f(u(k) - y(k)) - h(y(k)) - phi(w(k)) - c sign(w(k)),    w(k) = y(k) - y(k-1),
+
+    the non-linear feedback loop of paper 001 (eq. 2, G = q^-1 / (1 - q^-1)^2) with the map f
+    on the loop error (``error_map``: the controller's gain and its saturation), h on the output
+    (``gravity_map``) and phi on the output's difference (``friction_map``: viscous and Coulomb
+    friction; c: the Coulomb friction's step at w = 0), each a ``PiecewiseLinearMap``. ``compiled``
+    as in ``feedback_loop``."""
+    args = [np.ascontiguousarray(u, dtype=float), float(y0), float(coulomb)]
+    for m in (error_map, gravity_map, friction_map):
+        args += [np.ascontiguousarray(part, dtype=float) for part in (m.breakpoints, m.values, m.slopes)]
+    use = numba_enabled() if compiled is None else compiled
+    if use:
+        kernel = _kernel("servo")
+        if kernel is None:
+            raise ImportError("numba is not available")
+        y = np.empty(args[0].size)
+        kernel(*args, y)
+        return y
+    y = [0.0] * args[0].size
+    _servo_core(*[a.tolist() if isinstance(a, np.ndarray) else a for a in args], y)
+    return np.asarray(y, dtype=float)
+
+
+def _servo_core(u, y0, coulomb, fk, fv, fs, hk, hv, hs, pk, pv, ps, y):
+    """The recursion of ``servo_loop``: each map as (knots, values, slopes); a run that leaves
+    every finite bound stays there (inf), which the refinement rejects."""
+    previous, current = y0, y0
+    for k in range(len(u)):
+        y[k] = current
+        w = current - previous
+        acc = (_map_value(fk, fv, fs, 0.0, 0.0, u[k] - current) - _map_value(hk, hv, hs, 0.0, 0.0, current)
+               - _map_value(pk, pv, ps, 0.0, 0.0, w))
+        if w > 0.0:
+            acc -= coulomb
+        elif w < 0.0:
+            acc += coulomb
+        previous = current
+        current = current + w + acc
+        if not abs(current) < 1e150:
+            current = 1e150
+            previous = 1e150
