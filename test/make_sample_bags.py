@@ -14,7 +14,7 @@
 3. ``servo_arm/`` (a rosbag2 directory with MCAP storage, written with ``rosbags``): a position
    servo swinging a weighted arm (``hammer_ros.diagnosis.actuators.ServoArm``: P loop with a torque
    limit, gravity, viscous and Coulomb friction, encoder of 4096 counts a turn) at 100 Hz, the four
-   trajectories of ``servo_trajectories`` run three times (72 s). ``/arm_controller/commands``
+   trajectories of ``servo_trajectories`` run twice (48 s). ``/arm_controller/commands``
    std_msgs/msg/Float64MultiArray (a ros2_control forward position controller's goals for
    [shoulder_joint, elbow_joint]; the shoulder holds still); ``/joint_states`` sensor_msgs/msg/JointState
    with both named joints (header stamp = sample time, log time 0.3-2 ms later).
@@ -100,7 +100,7 @@ def write_joint_state_bag(path: Path) -> None:
             writer.write(joints, int(t[k] + latency[k]), store.serialize_cdr(msg, JointState.__msgtype__))
 
 
-def servo_arm_record(repeats: int = 3, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def servo_arm_record(repeats: int = 2, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """(goal, measured position) of the servo arm: the four trajectories run ``repeats`` times."""
     arm = ServoArm()
     goals = [u for _ in range(repeats) for u in servo_trajectories(RATE, 6.0, 1.0, seed)]

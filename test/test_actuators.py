@@ -158,3 +158,17 @@ def test_cli_split_auto(tmp_path, capsys, motor):
     assert main(["diagnose", str(path), "--split", "half"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--split" in err[0]
+
+
+def test_the_servo_sample_bag_is_diagnosed_as_a_servo_loop(capsys):
+    """bags/servo_arm (rosbag2, JointState with named joints, a Float64MultiArray command): the
+    diagnosis of the elbow names its own position loop."""
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    assert main(["diagnose", str(repo / "bags" / "servo_arm"), "--config", str(repo / "msg_config" / "servo_arm.yaml"),
+                 "--order", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["cause"] == "output_feedback" and doc["extended"]["form"] == "servo_loop"
+    assert doc["gain"]["rms_ratio"] >= 5.0
+    assert doc["extended"]["rms"] < 0.01  # rad, against a baseline near 0.03

@@ -149,7 +149,7 @@ def _raw_messages(bag):
 
 def test_sample_bags_are_reproducible_from_the_generator(tmp_path):
     make_sample_bags(str(tmp_path))
-    for name in ("float64_cubic_g1.mcap", "joint_state_saturation"):
+    for name in ("float64_cubic_g1.mcap", "joint_state_saturation", "servo_arm"):
         fresh, committed = tmp_path / name, REPO / "bags" / name
         assert sum(f.stat().st_size for f in bag_files(fresh)) < 2_000_000
         assert _raw_messages(fresh) == _raw_messages(committed)  # same CDR bytes, same times
