@@ -10,7 +10,7 @@ interpreter lock against the callbacks and the ingest thread. Ingestion never wa
 for a solve (a slow solve skips solves, never samples); parameters are validated and
 applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
 without a new model republishes the last good one marked stale. With ``output_mcap`` every
-published result is also recorded; on SIGINT/SIGTERM the node solves once more, records the
+published result is also recorded (ROS 2 messages only); on SIGINT/SIGTERM the node solves once more, records the
 final model and finishes the file.
 
 Stamps: a message with a non-zero ``header.stamp`` is placed by its stamp (a batch of n samples
@@ -64,6 +64,7 @@ from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
+    diagnosis_message,
     diagnostics_message,
     model_json,
     result_messages,
@@ -460,8 +461,9 @@ class IdentificationCore:
         self.trigger_services.close()
         return outcome
 
-    def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+    def _now(self) -> int:
+        """The node clock in integer nanoseconds (the stamp of what the node publishes)."""
+        return self.get_clock().now().nanoseconds
 
     def _warn_throttled(self, text: str) -> None:
         self.get_logger().warning(text, throttle_duration_sec=5.0)
@@ -727,8 +729,7 @@ class IdentificationCore:
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
         doc |= self._diagnosis(v, y)
         doc["seconds"] = time.perf_counter() - started
-        values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
-        self._send([("~/diagnosis", DIAGNOSIS_TYPE, values)], self._now(), publish=self.active)
+        self._send([diagnosis_message(doc)], self._now(), publish=self.active)
         return doc
 
     def _publish(self, outcome: SolveOutcome, stats, publish: bool = True) -> None:
@@ -745,18 +746,17 @@ class IdentificationCore:
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         self._send(messages, stamp, publish)
 
-    def _send(self, messages: list[tuple[str, str, dict]], stamp: float, publish: bool) -> None:
-        """Record ``messages`` and their dashboard channels in output_mcap, hand the dashboard
+    def _send(self, messages: list[tuple[str, str, dict]], stamp_ns: int, publish: bool) -> None:
+        """Record ``messages`` in output_mcap (ROS 2 messages only), hand their dashboard
         channels to the Foxglove server (never waits) and, with ``publish``, publish them."""
         server = self.server
-        dashboard = dashboard_messages(messages, stamp) if server is not None or self._writer is not None else []
         with self._writer_lock:
             if self._writer is not None:
-                record_results(self._writer, messages, stamp, self.get_name(), dashboard)
+                record_results(self._writer, messages, stamp_ns, self.get_name())
         if not publish:
             return
         if server is not None:
-            server.publish(dashboard, stamp)
+            server.publish(dashboard_messages(messages, stamp_ns), stamp_ns)
         try:
             for topic, type_name, values in messages:
                 self._outputs[topic].publish(to_ros_message(type_name, values))
