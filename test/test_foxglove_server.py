@@ -1,7 +1,9 @@
 """The node's in-process Foxglove server (``foxglove_port``), tested with a WebSocket client
 that speaks the Foxglove protocol (``websockets``, subprotocol foxglove.sdk.v1) against a
 running node on a private graph: server info, channel advertisements, subscribed messages that
-match ~/model, loopback only, and misbehaving clients that never take the node down."""
+match ~/model and follow their schemas, the latest message resent to a subscribing client only,
+parameters and services over the protocol, loopback only, and misbehaving clients that never take
+the node down."""
 
 from __future__ import annotations
 
@@ -15,9 +17,11 @@ import threading
 
 import pytest
 from ros_helpers import Listener, RosProcess
+from schema_check import mismatches
 
 from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
 from hammer_ros.ros.environment import DomainLease, child_environment
+from hammer_ros.ros.node_core import PARAMETERS
 
 pytestmark = pytest.mark.ros
 
@@ -65,6 +69,7 @@ class FoxgloveClient:
         self.info: dict | None = None
         self.channels: dict[str, dict] = {}
         self.messages: dict[str, list[dict]] = {topic: [] for topic in subscribe}
+        self.log_times: dict[str, list[int]] = {topic: [] for topic in subscribe}
         self.statuses: list[dict] = []
         self.error: BaseException | None = None
         self._stop = threading.Event()
@@ -84,8 +89,9 @@ class FoxgloveClient:
                         continue
                     if isinstance(frame, bytes):  # opcode 1: message data
                         assert frame[0] == 1
-                        subscription = struct.unpack_from("<I", frame, 1)[0]
+                        subscription, log_time = struct.unpack_from("<IQ", frame, 1)
                         self.messages[by_subscription[subscription]].append(json.loads(frame[13:]))
+                        self.log_times[by_subscription[subscription]].append(log_time)
                         continue
                     doc = json.loads(frame)
                     if doc["op"] == "serverInfo":
@@ -170,7 +176,8 @@ def test_a_foxglove_client_gets_the_channels_and_the_model(rig):
         model = client.channels[model_topic]
         assert (model["encoding"], model["schemaEncoding"], model["schemaName"]) == ("json", "jsonschema",
                                                                                    "hammer_ros.Model")
-        assert json.loads(model["schema"])["properties"]["poles"] == {"type": "array"}
+        assert all(json.loads(client.channels[dashboard_topic(name)]["schema"]) == schema
+                   for name, (_, schema) in CHANNELS.items())
         assert client.channels[dashboard_topic("diagnosis_log")]["schemaName"] == "foxglove.Log"
 
         def matching():  # a Foxglove model equal to a ~/model message (the same solve)
@@ -179,11 +186,122 @@ def test_a_foxglove_client_gets_the_channels_and_the_model(rig):
 
         foxglove_model, ros_model = rig.wait_for(matching, what="a Foxglove model that is on ~/model too")[-1]
         assert {k: v for k, v in foxglove_model.items() if k != "timestamp"} == ros_model
+        for topic in (model_topic, poles_topic):
+            assert all(mismatches(CHANNELS[topic.rsplit("/", 1)[1]][1], m) == [] for m in client.messages[topic])
         poles = client.messages[poles_topic][-1]
         assert len(poles["real"]) == len(poles["imag"]) == NODE["order"]
         assert [p["x"] for p in poles["points"]] == poles["real"] and len(poles["unit_circle"]) > 60
     finally:
         client.close()
+
+
+async def _resubscribe(port: int, cycles: int) -> int:
+    """Subscribe to every channel, wait for a model, unsubscribe; ``cycles`` times. The models received."""
+    import websockets
+
+    received = 0
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
+        await ws.recv()  # serverInfo
+        channels = {c["topic"]: c["id"] for c in json.loads(await ws.recv())["channels"]}
+        for k in range(cycles):
+            ids = {topic: 1000 * k + i for i, topic in enumerate(channels)}
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": ids[topic], "channelId": channel} for topic, channel in channels.items()]}))
+            try:  # the latest model (within RESEND_PERIOD), or a fresh one
+                while True:
+                    frame = await asyncio.wait_for(ws.recv(), 2.0)
+                    model = ids[dashboard_topic("model")]
+                    if isinstance(frame, bytes) and struct.unpack_from("<I", frame, 1)[0] == model:
+                        received += 1
+                        break
+            except asyncio.TimeoutError:
+                pass
+            await ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": list(ids.values())}))
+    return received
+
+
+def test_a_resubscribing_client_sends_no_duplicate_to_another(rig):
+    """While one client subscribes and unsubscribes 30 times, another dashboard receives each
+    message once (the latest message goes to the subscribing client only)."""
+    topics = tuple(dashboard_topic(name) for name in CHANNELS if name not in ("diagnosis", "diagnosis_log"))
+    watcher = FoxgloveClient(rig.port, topics)
+    try:
+        rig.wait_for(lambda: watcher.error or all(watcher.messages[t] for t in topics), what="every channel")
+        resent = rig.wait_for(lambda: rig.diagnostics and int(rig.diagnostics[-1]["foxglove_resent"]) + 1,
+                              what="the server's counters") - 1
+        assert asyncio.run(asyncio.wait_for(_resubscribe(rig.port, 30), 120)) == 30  # a message every time
+        rig.wait_for(lambda: int(rig.diagnostics[-1]["foxglove_resent"]) >= resent + 30,  # most cycles, every channel
+                     what="the latest messages resent to the resubscribing client")
+        assert watcher.error is None
+        for topic in topics:
+            times = watcher.log_times[topic]
+            assert len(times) == len(set(times)) and len(times) >= 2, topic  # no message twice
+    finally:
+        watcher.close()
+
+
+async def _parameters_and_services(port: int) -> dict:
+    """getParameters, an accepted and a refused setParameters and a ~/solve call; what came back."""
+    import websockets
+
+    async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL]) as ws:
+        seen: dict = {"status": []}
+
+        async def until(key: str, done=None):
+            """Read frames until ``key`` was seen (or ``done()``); what came with it."""
+            while not (done() if done else key in seen):
+                frame = await asyncio.wait_for(ws.recv(), 30)
+                if isinstance(frame, bytes):
+                    if frame[0] == 3:  # service call response: service id, call id, encoding, payload
+                        service, call, length = struct.unpack_from("<III", frame, 1)
+                        encoding, payload = frame[13:13 + length].decode(), json.loads(frame[13 + length:])
+                        seen[f"call {call}"] = (service, encoding, payload)
+                    continue
+                doc = json.loads(frame)
+                if doc["op"] == "parameterValues":
+                    seen[f"parameters {doc.get('id')}"] = {p["name"]: p.get("value") for p in doc["parameters"]}
+                elif doc["op"] == "status":
+                    seen["status"].append(doc)
+                else:
+                    seen[doc["op"]] = doc
+            return seen.get(key)
+
+        info = await until("serverInfo")
+        services = {s["name"]: s for s in (await until("advertiseServices"))["services"]}
+        await ws.send(json.dumps({"op": "getParameters", "parameterNames": ["window", "method", "partition"],
+                                  "id": "get"}))
+        await until("parameters get")
+        await ws.send(json.dumps({"op": "getParameters", "parameterNames": [], "id": "all"}))
+        await until("parameters all")
+        await ws.send(json.dumps({"op": "setParameters", "parameters": [{"name": "solve_rate", "value": 3.5}],
+                                  "id": "accepted"}))
+        await until("parameters accepted")
+        await ws.send(json.dumps({"op": "setParameters", "parameters": [{"name": "window", "value": 100}],
+                                  "id": "refused"}))
+        await until("parameters refused", lambda: "parameters refused" in seen and seen["status"])
+        solve = services["/hammer_ros/solve"]
+        encoding = b"json"
+        await ws.send(struct.pack("<BIII", 2, solve["id"], 7, len(encoding)) + encoding + b"{}")
+        await until("call 7")
+        return {"info": info, "services": services, **seen}
+
+
+def test_parameters_and_services_over_the_websocket(rig):
+    seen = asyncio.run(asyncio.wait_for(_parameters_and_services(rig.port), 120))
+    assert {"parameters", "services"} <= set(seen["info"]["capabilities"])
+    assert set(seen["services"]) == {f"/hammer_ros/{name}" for name in ("reset", "solve", "diagnose")}
+    assert seen["services"]["/hammer_ros/solve"]["type"] == "std_srvs/srv/Trigger"
+    assert seen["parameters get"] == {"window": NODE["window"], "method": "cls-markov"}  # partition: unset
+    everything = seen["parameters all"]
+    assert set(everything) == set(PARAMETERS) - {"partition"}  # every parameter with a value
+    assert everything["foxglove_port"] == rig.port and everything["order"] == NODE["order"]
+    assert seen["parameters accepted"] == {"solve_rate": 3.5}
+    assert seen["parameters refused"] == {"window": NODE["window"]}  # unchanged, and the ROS reason says why
+    refusal = "window: must be >= max(16, 2 tau_max + 2) = 122 samples (got 100)"  # as from ros2 param set
+    assert [s["message"] for s in seen["status"]] == [refusal]
+    service, encoding, response = seen["call 7"]
+    assert (service, encoding) == (seen["services"]["/hammer_ros/solve"]["id"], "json")
+    assert response["success"] is True and json.loads(response["message"])["order"] == NODE["order"]
 
 
 def test_the_server_listens_on_loopback_only(rig):

@@ -45,7 +45,12 @@ from rcl_interfaces.msg import (  # noqa: E402
     SetParametersResult,
 )
 from rclpy.event_handler import QoSSubscriptionEventType, UnsupportedEventTypeError  # noqa: E402
-from rclpy.exceptions import InvalidHandle, ParameterException, ParameterUninitializedException  # noqa: E402
+from rclpy.exceptions import (  # noqa: E402
+    InvalidHandle,
+    ParameterException,
+    ParameterNotDeclaredException,
+    ParameterUninitializedException,
+)
 from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -382,7 +387,8 @@ class IdentificationCore:
             from .foxglove_server import DashboardServer  # the SDK only when asked for
 
             self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
-                                          self._warn_throttled)
+                                          self._warn_throttled, parameters=self,
+                                          services=self.trigger_services.handlers)
         self.engine = StreamingEngine(config)
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
@@ -587,6 +593,20 @@ class IdentificationCore:
                                     throttle_duration_sec=5.0)
 
     # ------------------------------------------------------------------ parameters
+    def parameter_values(self) -> dict[str, Any]:
+        """The current value of every node parameter (None: unset), for the Foxglove server."""
+        return {name: self._declared_value(name) for name in PARAMETERS}
+
+    def set_parameter_value(self, name: str, value: Any) -> tuple[bool, str]:
+        """Set one parameter as rclpy's SetParameters service does (``set_parameters_atomically``
+        of it alone), so a change from Foxglove is validated exactly as one from ``ros2 param set``
+        and refused with the same reason; (successful, reason)."""
+        try:
+            result = self.set_parameters_atomically([Parameter(name, value=value)])
+        except (ParameterNotDeclaredException, TypeError, ValueError) as exc:  # TypeError: no parameter type
+            return False, str(exc)
+        return result.successful, result.reason
+
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         try:
             current = dict(self.values) if self.engine is not None else {
