@@ -188,11 +188,12 @@ def run(args: argparse.Namespace) -> int:
         finally:
             stop.__exit__()
     result.read.report(args.bag)
+    files = ", ".join(str(Path(p)) for p in (args.out, args.dashboard_out) if p)
     if stop.signal is not None:
         name = signal.Signals(stop.signal).name
         print(f"hammer-ros: replay stopped by {name} after {result.messages} of {result.total} messages; final model "
               f"solved on the {result.stats.aligned} samples read"
-              + (f"; {result.written} messages written" if result.written else ""), file=sys.stderr)
+              + (f"; {result.written} messages in {files}" if files else ""), file=sys.stderr)
         if result.last_ok is None:
             reason = result.last.reason if result.last else "no messages"
             print(f"hammer-ros: no model identified ({reason})", file=sys.stderr)
@@ -205,9 +206,8 @@ def run(args: argparse.Namespace) -> int:
         wall = result.wall_s
         rate = result.stats.aligned / wall if wall > 0 else float("inf")
         print(format_model(doc))
-        files = ", ".join(str(Path(p)) for p in (args.out, args.dashboard_out) if p)
         print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"
-              + (f"; {result.written} messages -> {files}" if result.written else ""))
+              + (f"; {result.written} messages -> {files}" if files else ""))
         if result.diagnosis is not None:
             print(f"diagnosis {result.diagnosis.get('cause', result.diagnosis.get('error'))}")
     return 0 if stop.signal is None else 128 + stop.signal
