@@ -14,6 +14,7 @@ import pytest
 from make_sample_bags import G1, RESONANT
 
 from hammer_ros.cli import main
+from hammer_ros.diagnosis.causes import CAUSES
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
 
@@ -55,16 +56,14 @@ def test_replay_of_a_rosbags_bag_equals_identify_on_the_same_samples(capsys):
 
 def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
     """Every message of --out deserialises in rosbags, stamped exactly as the input sample it was
-    solved at; --dashboard-out holds the dashboard channels, each message declared by its schema;
-    --diagnose adds the final window's diagnosis to both."""
+    solved at; --dashboard-out holds the dashboard channels, each message declared by its schema."""
     from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
     from schema_check import mismatches
 
     out, dashboard_out = tmp_path / "results.mcap", tmp_path / "dashboard.mcap"
     doc = run_json(capsys, "replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml",
-                   "--solve-rate", "1", "--out", str(out), "--dashboard-out", str(dashboard_out), "--diagnose",
-                   "--json")
+                   "--solve-rate", "1", "--out", str(out), "--dashboard-out", str(dashboard_out), "--json")
     with AnyReader([out]) as reader:
         assert {c.ext.serialization_format for c in reader.connections} == {"cdr"}  # nothing else for ROS readers
         types = {c.topic: c.msgtype for c in reader.connections}
@@ -74,16 +73,15 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
     assert all(t in input_stamps for _, t, _ in messages)  # integer ns, exactly the input's
     assert all(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == t
                for _, t, msg in messages if hasattr(msg, "header"))
-    diagnosis = [json.loads(msg.data) for topic, _, msg in messages if topic == "/hammer_ros/diagnosis"]
-    assert len(diagnosis) == 1 and diagnosis[0] == json.loads(json.dumps(doc["diagnosis"]))
-    assert diagnosis[0]["cause"] == "none" and diagnosis[0]["samples"] == 4000  # the window, of a Hammerstein bag
     with open(dashboard_out, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
         channels = {c.topic: (c.message_encoding, summary.schemas[c.schema_id]) for c in summary.channels.values()}
         dashboard = [(c.topic, m.log_time, json.loads(m.data)) for _, c, m in reader.iter_messages()]
-    assert set(channels) == {dashboard_topic(name) for name in CHANNELS}
-    for name, (schema_name, schema) in CHANNELS.items():
+    solved = [name for name in CHANNELS if not name.startswith("diagnosis")]  # no --diagnose
+    assert set(channels) == {dashboard_topic(name) for name in solved}
+    for name in solved:
+        schema_name, schema = CHANNELS[name]
         encoding, stored = channels[dashboard_topic(name)]
         assert (encoding, stored.name, stored.encoding, json.loads(stored.data)) == ("json", schema_name,
                                                                                      "jsonschema", schema)
@@ -91,18 +89,16 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
         assert mismatches(CHANNELS[topic.rsplit("/", 1)[1]][1], message) == [], topic
         assert log_time in input_stamps
         assert log_time == message["timestamp"]["sec"] * 10**9 + message["timestamp"]["nsec"]
-    assert sum(topic == dashboard_topic("diagnosis") for topic, _, _ in dashboard) == 1
     joint_state = "sensor_msgs/msg/JointState"
     assert types == {"/hammer_ros/model": "std_msgs/msg/String", "/hammer_ros/poles": joint_state,
                      "/hammer_ros/zeros": joint_state, "/hammer_ros/markov": joint_state,
                      "/hammer_ros/nonlinearity": "geometry_msgs/msg/PolygonStamped",
-                     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
-                     "/hammer_ros/diagnosis": "std_msgs/msg/String"}
+                     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
     by_topic: dict[str, list] = {}
     for topic, stamp_ns, msg in messages:
         by_topic.setdefault(topic, []).append((stamp_ns, msg))
     solves = doc["solves"]
-    assert all(len(by_topic[t]) == solves for t in types if t not in ("/diagnostics", "/hammer_ros/diagnosis"))
+    assert all(len(by_topic[t]) == solves for t in types if t != "/diagnostics")
     assert len(by_topic["/diagnostics"]) >= solves  # one per attempt, the first ones before the window fills
     # content: each solve's messages agree with its model JSON and carry its stamp
     for (t_model, model), (t_poles, pole_msg), (_, markov_msg), (_, curve) in zip(
@@ -117,8 +113,8 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
         points = np.array([[p.x, p.y] for p in curve.polygon.points])
         np.testing.assert_allclose(points, model_doc["nonlinearity"]["points"], rtol=1e-6, atol=1e-6)  # float32
     last = json.loads(by_topic["/hammer_ros/model"][-1][1].data)
-    assert {k: last[k] for k in doc if k not in ("samples", "solves", "wall_s", "diagnosis")} == {
-        k: doc[k] for k in doc if k not in ("samples", "solves", "wall_s", "diagnosis")}
+    assert {k: last[k] for k in doc if k not in ("samples", "solves", "wall_s")} == {
+        k: doc[k] for k in doc if k not in ("samples", "solves", "wall_s")}
     assert root_rss_error(G1.poles, poles(last)) < 0.02
     status = by_topic["/diagnostics"][-1][1].status[0]
     values = {kv.key: kv.value for kv in status.values}
@@ -126,6 +122,25 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
     assert int(values["aligned"]) == 6000 and int(values["nan_skipped"]) == 0
     first = by_topic["/diagnostics"][0][1].status[0]
     assert first.level == 1 and first.message.startswith("window")
+
+
+def test_replay_diagnose_writes_the_final_diagnosis_into_both_files(capsys, tmp_path):
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    out, dashboard_out = tmp_path / "results.mcap", tmp_path / "dashboard.mcap"
+    doc = run_json(capsys, "replay", JOINT_BAG, "--config", "msg_config/joint_state_saturation.yaml", "--solve-rate",
+                   "1", "--out", str(out), "--dashboard-out", str(dashboard_out), "--diagnose", "--json")
+    assert doc["diagnosis"]["samples"] == 4000 and doc["diagnosis"]["cause"] in CAUSES  # the final window
+    with AnyReader([out]) as reader:
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+    diagnosis = [(t, json.loads(msg.data)) for topic, t, msg in messages if topic == "/hammer_ros/diagnosis"]
+    assert [d for _, d in diagnosis] == [doc["diagnosis"]]
+    assert diagnosis[0][0] == max(t for _, t, _ in messages)  # stamped as the final results
+    with open(dashboard_out, "rb") as f:
+        dashboard = {c.topic: json.loads(m.data) for _, c, m in make_reader(f).iter_messages()}
+    assert {k: v for k, v in dashboard[dashboard_topic("diagnosis")].items() if k != "timestamp"} == doc["diagnosis"]
+    assert dashboard[dashboard_topic("diagnosis_log")]["message"].startswith("diagnosis of 4000 samples")
 
 
 def test_readme_example_runs_as_a_console_script():
