@@ -7,42 +7,27 @@ messages. Skipped, saying why, without Node.js or the installed packages."""
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
+from foxglove_js import run_checker
 
 from hammer_ros.cli import main
 from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
 
 REPO = Path(__file__).resolve().parents[1]
-CHECKERS = REPO / "test" / "js"
 BAGS = [("bags/float64_cubic_g1.mcap", "msg_config/float64_cubic_g1.yaml", []),
         ("bags/joint_state_saturation", "msg_config/joint_state_saturation.yaml", ["--diagnose"])]
 
 
-def foxglove_readers() -> str:
-    node = shutil.which("node")
-    if node is None:
-        pytest.skip("Node.js is not installed: Foxglove's TypeScript readers cannot run")
-    if not (CHECKERS / "node_modules" / "@mcap" / "core").is_dir():
-        pytest.skip("test/js is not installed (npm ci --prefix test/js, as .ci/run does)")
-    return node
-
-
 @pytest.mark.parametrize(("bag", "config", "options"), BAGS, ids=["float64", "joint_state"])
 def test_foxglove_readers_decode_every_message_of_both_files(capsys, tmp_path, bag, config, options):
-    node = foxglove_readers()
     out, dashboard_out = tmp_path / "results.mcap", tmp_path / "dashboard.mcap"
     assert main(["replay", str(REPO / bag), "--config", str(REPO / config), "--solve-rate", "1", "--out", str(out),
                  "--dashboard-out", str(dashboard_out), *options, "--json"]) == 0
     solves = json.loads(capsys.readouterr().out)["solves"]
-    done = subprocess.run([node, str(CHECKERS / "check_mcap.mjs"), str(out), str(dashboard_out)], capture_output=True,
-                          text=True, timeout=120)
-    report = json.loads(done.stdout)
-    assert done.returncode == 0, {f: {t: v["errors"] for t, v in topics.items() if v["errors"]}
-                                  for f, topics in report.items()}
+    code, report = run_checker("check_mcap.mjs", str(out), str(dashboard_out))
+    assert code == 0, {f: {t: v["errors"] for t, v in topics.items() if v["errors"]} for f, topics in report.items()}
     results, dashboard = report[str(out)], report[str(dashboard_out)]
     assert {v["encoding"] for v in results.values()} == {"cdr/ros2msg"}
     assert results["/hammer_ros/model"]["messages"] == solves

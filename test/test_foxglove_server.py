@@ -16,6 +16,7 @@ import struct
 import threading
 
 import pytest
+from foxglove_js import run_checker
 from ros_helpers import Listener, RosProcess
 from schema_check import mismatches
 
@@ -302,6 +303,25 @@ def test_parameters_and_services_over_the_websocket(rig):
     service, encoding, response = seen["call 7"]
     assert (service, encoding) == (seen["services"]["/hammer_ros/solve"]["id"], "json")
     assert response["success"] is True and json.loads(response["message"])["order"] == NODE["order"]
+
+
+def test_foxglove_ws_protocol_clients(rig):
+    """The same with two clients of Foxglove's own library (@foxglove/ws-protocol 0.8.0): no
+    duplicate for the watcher while the other resubscribes 30 times, parameters and ~/solve; its
+    default subprotocol alone (foxglove.websocket.v1) is refused by the SDK's handshake."""
+    code, seen = run_checker("ws_clients.mjs", str(rig.port))
+    assert code == 0, seen
+    assert seen["legacy_status"] == 400
+    assert {"parameters", "services"} <= set(seen["capabilities"])
+    assert seen["services"] == [f"/hammer_ros/{name}" for name in ("diagnose", "reset", "solve")]
+    assert seen["cycles_with_model"] == 30
+    assert seen["watcher_duplicates"] == dict.fromkeys(seen["watcher_duplicates"], 0)  # on every channel
+    assert seen["watcher_messages"][dashboard_topic("model")] >= 2
+    assert seen["parameters"]["get"]["window"] == NODE["window"] and seen["parameters"]["get"]["method"] == "cls-markov"
+    assert seen["parameters"]["accepted"] == {"solve_rate": 3.0}
+    assert seen["parameters"]["refused"] == {"window": NODE["window"]}
+    assert seen["statuses"] == ["window: must be >= max(16, 2 tau_max + 2) = 122 samples (got 100)"]
+    assert seen["solve"]["encoding"] == "json" and seen["solve"]["payload"]["success"] is True
 
 
 def test_the_server_listens_on_loopback_only(rig):

@@ -120,7 +120,9 @@ class DashboardServer:
             raise UsageError(f"foxglove_port: cannot listen on {host}:{port} ({exc})") from None
         self._queue: deque[tuple[str, dict, int]] = deque()
         self._latest: dict[str, tuple[dict, int]] = {}
-        self._resend: set[tuple[int, str]] = set()  # (client id, channel) to send the latest message to
+        # (client id, channel) -> when it subscribed: send it the channel's latest message, unless broadcast since
+        self._resend: dict[tuple[int, str], float] = {}
+        self._broadcast: dict[str, float] = {}  # channel -> when its latest message went to every subscriber
         self._last_resend: dict[int, float] = {}  # client id -> when it was last sent latest messages
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -171,14 +173,14 @@ class DashboardServer:
         name = self._by_id.get(channel.id)
         if name is not None:
             with self._lock:
-                self._resend.add((client.id, name))
+                self._resend[(client.id, name)] = time.monotonic()
             self._wake.set()
 
     def on_unsubscribe(self, client, channel) -> None:
         self.counts["foxglove_unsubscribe_requests"] += 1
         self._subscriptions.discard((client.id, channel.id))
         with self._lock:
-            self._resend.discard((client.id, self._by_id.get(channel.id)))
+            self._resend.pop((client.id, self._by_id.get(channel.id)), None)
 
     def on_get_parameters(self, client, param_names: list[str], request_id: str | None = None) -> list:
         values = self._parameters.parameter_values()
@@ -201,16 +203,16 @@ class DashboardServer:
             now = time.monotonic()
             with self._lock:
                 items, self._queue = list(self._queue), deque()
-                due = {(client, name) for client, name in self._resend
-                       if now - self._last_resend.get(client, -RESEND_PERIOD) >= RESEND_PERIOD}
-                self._resend -= due
+                due = {key: self._resend.pop(key) for key in list(self._resend)
+                       if now - self._last_resend.get(key[0], -RESEND_PERIOD) >= RESEND_PERIOD}
             for name, message, log_time in items:
                 self._latest[name] = (message, log_time)
                 self._send(name, message, log_time)
-            fresh = {name for name, _, _ in items}  # just sent to every subscriber
-            for client_id, name in due:
+                self._broadcast[name] = time.monotonic()  # after: a client subscribed before has it
+            for (client_id, name), subscribed in due.items():
                 self._last_resend[client_id] = now
-                if name not in fresh and name in self._latest:
+                # a message broadcast after the subscription reached this client already
+                if name in self._latest and self._broadcast[name] < subscribed:
                     self._send(name, *self._latest[name], sink=client_sink(client_id))
 
     def _send(self, name: str, message: dict, log_time: int, sink: int | None = None) -> None:
