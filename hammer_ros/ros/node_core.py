@@ -143,8 +143,8 @@ PARAMETERS: dict[str, Spec] = {
     "max_pending": Spec(1_000_000, "int", "samples queued per input between the callbacks and the engine; a "
                         "message that does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000,
                         read_only=True),
-    "output_mcap": Spec("", "str", "record every published result (ROS 2 messages) in this MCAP file, finished on shutdown "
-                        "(SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
+    "output_mcap": Spec("", "str", "record every published result (ROS 2 messages) in this MCAP file, finished on "
+                        "shutdown (SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
     "foxglove_port": Spec(0, "int", "port of the in-process Foxglove WebSocket server of the dashboard channels; "
                           "0 = off", 0, 65535, read_only=True),
     "foxglove_host": Spec("127.0.0.1", "str", "address the Foxglove server listens on (loopback by default; "
