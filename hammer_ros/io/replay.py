@@ -184,14 +184,19 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     done = 0
     started = time.perf_counter()
 
-    in_flight: deque = deque()  # (counters at the snapshot, read statistics then, bag time) of solves in the solver
+    in_flight: deque = deque()  # (counters at the snapshot, read statistics then, its stamp) of solves in the solver
     share = solver is not None and portable_estimate(config)  # the loop may estimate for a worker behind
 
-    def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], bag_time_ns: int) -> None:
+    def stamp_of(grid_time: float) -> int:
+        """The exact stamp of a solve at ``grid_time`` (taken when it is solved or submitted,
+        while its input stamps are at hand); the last sample's before the first grid point."""
+        return input_stamps.exact(grid_time) if math.isfinite(grid_time) else bag_time_ns
+
+    def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], stamp_ns: int) -> None:
         nonlocal last_ok, last, last_stamp_ns
         last = outcome
         last_ok = last if last.ok else last_ok
-        last_stamp_ns = input_stamps.exact(last.stamp) if math.isfinite(last.stamp) else bag_time_ns
+        last_stamp_ns = stamp_ns
         if writer is None and dashboard is None and publisher is None:  # nobody reads the messages (--json)
             return
         messages = result_messages(last, last_stamp_ns, frame_id)
@@ -210,21 +215,22 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     def collect(wait: bool) -> None:
         """Emit the outcomes that have arrived (``wait``: every one in flight), in order."""
         while in_flight and (wait or solver.ready()):
-            stats, read_values, bag_time_ns = in_flight.popleft()
+            stats, read_values, stamp_ns = in_flight.popleft()
             outcome = solver.result()
             engine.record(outcome)
             count_outcome(stats, outcome)
-            emit(outcome, stats, read_values, bag_time_ns)
+            emit(outcome, stats, read_values, stamp_ns)
 
-    def solve(bag_time_ns: int, final: bool = False) -> None:
+    def solve(final: bool = False) -> None:
         engine.flush()
         if solver is None:
-            emit(engine.solve(), engine.stats, bag_values(read), bag_time_ns)
+            outcome = engine.solve()
+            emit(outcome, engine.stats, bag_values(read), stamp_of(outcome.stamp))
             return
         snapshot = engine.snapshot()
         help_worker = share and len(in_flight) >= OWNER_ESTIMATES_FROM
         solver.submit(snapshot, estimate_snapshot(snapshot, solver.documents) if help_worker else None)
-        in_flight.append((snapshot.stats, bag_values(read), bag_time_ns))
+        in_flight.append((snapshot.stats, bag_values(read), stamp_of(snapshot.stamp)))
         collect(wait=final or len(in_flight) > MAX_IN_FLIGHT)
 
     bag_start = next_solve = None
@@ -242,7 +248,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             if stop is not None and stop.signal is not None:
                 break
             if sample.stamp >= next_solve:
-                solve(bag_time_ns)
+                solve()
                 next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
             engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
             if sample.stream == "excitation":
@@ -253,7 +259,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             done += 1
             if progress:
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
-        solve(bag_time_ns, final=True)  # the final model, also after a signal
+        solve(final=True)  # the final model, also after a signal
         if solver is not None and last_ok is not None and last_ok.doc is None:  # solved without documents
             documented = solver.document()
             last = documented if last is last_ok else last
