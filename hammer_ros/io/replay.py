@@ -208,7 +208,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         send(messages, last_stamp_ns)
 
     def send(messages: list[tuple[str, str, dict]], stamp_ns: int) -> None:
-        record_results(writer, messages, stamp_ns, node_name, dashboard)  # first: whatever is published is in it
+        # first into the files: whatever is published is in them
+        record_results(writer, messages, stamp_ns, node_name, dashboard_writer=dashboard)
         for topic, type_name, message in messages if publisher else ():
             publisher.publish(topic, type_name, message)
 

@@ -21,6 +21,7 @@ import math
 from typing import Any
 
 from ..io.bags import JsonWriter, ResultWriter, node_topic
+from .outputs import checked_ns
 
 # JSON schema building blocks. Every key a channel's messages can carry is declared (test_dashboard
 # checks the messages of a replay and of a live node against them); an object whose keys depend on
@@ -104,7 +105,7 @@ def dashboard_topic(channel: str, node_name: str = "hammer_ros") -> str:
 
 
 def _time(stamp_ns: int) -> dict[str, int]:
-    ns = max(0, int(stamp_ns))
+    ns = checked_ns(stamp_ns)
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
@@ -173,11 +174,12 @@ def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_ns: int) -> 
 
 
 def record_results(writer: ResultWriter | None, messages: list[tuple[str, str, dict]], stamp_ns: int,
-                   node_name: str, dashboard_writer: JsonWriter | None = None,
+                   node_name: str, *, dashboard_writer: JsonWriter | None = None,
                    dashboard: list[tuple[str, dict]] | None = None) -> None:
     """Write ``messages`` (as ROS 2 messages) into ``writer`` and their dashboard channels (as
     JSON with their schemas; ``dashboard`` when already built) into ``dashboard_writer``, all at
     log time ``stamp_ns``."""
+    stamp_ns = checked_ns(stamp_ns)
     if writer is not None:
         for topic, type_name, message in messages:
             writer.write(node_topic(topic, node_name), type_name, message, stamp_ns)

@@ -32,6 +32,7 @@ from typing import Any, Protocol
 
 from ..errors import UsageError
 from .dashboard import CHANNELS, dashboard_topic
+from .outputs import checked_ns
 
 QUEUE = 256  # payloads waiting for the publishing thread; beyond, the oldest are dropped (counted)
 RESEND_PERIOD = 0.2  # s: a client's subscribe flood resends it the latest messages at most this often
@@ -153,7 +154,7 @@ class DashboardServer:
 
     def publish(self, items: list[tuple[str, dict]], stamp_ns: int) -> None:
         """Queue (channel, JSON message) pairs stamped ``stamp_ns``; returns at once."""
-        log_time = max(0, int(stamp_ns))
+        log_time = checked_ns(stamp_ns)
         with self._lock:
             for name, message in items:
                 if len(self._queue) >= QUEUE:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import numbers
 from typing import Any
 
 import numpy as np
@@ -46,9 +47,17 @@ def seconds_to_ns(stamp_s: float) -> int:
     return int(round(stamp_s * 1e9)) if math.isfinite(stamp_s) and stamp_s > 0 else 0
 
 
+def checked_ns(stamp_ns: int) -> int:
+    """``stamp_ns`` as a non-negative int; TypeError for a float (seconds passed where integer
+    nanoseconds are expected would otherwise stamp 1.7e9 s as 1.7 s)."""
+    if not isinstance(stamp_ns, numbers.Integral):
+        raise TypeError(f"a stamp must be integer nanoseconds (got {type(stamp_ns).__name__} {stamp_ns!r})")
+    return max(0, int(stamp_ns))
+
+
 def stamp_dict(stamp_ns: int) -> dict:
     """builtin_interfaces/Time of a time in integer nanoseconds (negative -> 0)."""
-    ns = max(0, int(stamp_ns))
+    ns = checked_ns(stamp_ns)
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
 
