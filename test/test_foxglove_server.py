@@ -65,8 +65,9 @@ def listening_sockets(pid: int) -> list[tuple[str, int]]:
 class FoxgloveClient:
     """A Foxglove WebSocket client in a thread of its own (asyncio), recording what it receives."""
 
-    def __init__(self, port: int, subscribe: tuple[str, ...]) -> None:
-        self.port, self.wanted = port, subscribe
+    def __init__(self, port: int, subscribe: tuple[str, ...], first_frames: tuple[dict, ...] = ()) -> None:
+        self.port, self.wanted, self.first_frames = port, subscribe, first_frames
+        self.parameter_values: list[dict] = []  # parameterValues messages
         self.info: dict | None = None
         self.channels: dict[str, dict] = {}
         self.messages: dict[str, list[dict]] = {topic: [] for topic in subscribe}
@@ -96,7 +97,11 @@ class FoxgloveClient:
                         continue
                     doc = json.loads(frame)
                     if doc["op"] == "serverInfo":
+                        for first in self.first_frames:
+                            await ws.send(json.dumps(first))
                         self.info = doc
+                    elif doc["op"] == "parameterValues":
+                        self.parameter_values.append(doc)
                     elif doc["op"] == "advertise":
                         self.channels.update({c["topic"]: c for c in doc["channels"]})
                         subscriptions = []
@@ -327,6 +332,27 @@ def test_foxglove_ws_protocol_clients(rig):
     assert seen["parameters"]["refused"] == {"window": NODE["window"]}
     assert seen["statuses"] == ["window: must be >= max(16, 2 tau_max + 2) = 122 samples (got 100)"]
     assert seen["solve"]["encoding"] == "json" and seen["solve"]["payload"]["success"] is True
+
+
+def test_a_parameter_set_from_ros_reaches_the_subscribed_foxglove_clients(rig):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    client = FoxgloveClient(rig.port, (), first_frames=(
+        {"op": "subscribeParameterUpdates", "parameterNames": ["solve_rate"]},
+        {"op": "getParameters", "parameterNames": ["solve_rate"], "id": "subscribed"}))  # answered after it
+    try:
+        rig.wait_for(lambda: client.error or any(p.get("id") == "subscribed" for p in client.parameter_values),
+                     what="the parameter subscription")
+        ros = AsyncParameterClient(rig.node, "hammer_ros")
+        rig.wait_for(ros.services_are_ready, what="the node's parameter services")
+        [result] = rig.wait_future(ros.set_parameters([Parameter("solve_rate", value=4.25)])).results
+        assert result.successful
+        update = rig.wait_for(lambda: [p for p in client.parameter_values if "id" not in p],
+                              what="the change on the Foxglove client")
+        assert update[-1]["parameters"] == [{"name": "solve_rate", "value": 4.25, "type": "float64"}]
+    finally:
+        client.close()
 
 
 def test_the_server_listens_on_loopback_only(rig):

@@ -16,8 +16,10 @@ never raised; it is counted here, from the SDK's log records and its subscribe c
 Parameters: ``getParameters`` answers with the node's parameters by name (all for an empty
 list); ``setParameters`` sets each one as the ROS SetParameters service does (the node's own
 validation); a refused change keeps the value, and its reason (the ROS reason) goes out as a
-warning status. Services: JSON requests (``{}``) and responses ``{"success": bool, "message":
-str}``, the std_srvs/srv/Trigger fields.
+warning status. A change from any side (``ros2 param set`` too) goes out to the clients that
+subscribed to parameter updates (``parameters_changed``, sent by the server's thread).
+Services: JSON requests (``{}``) and responses ``{"success": bool, "message": str}``, the
+std_srvs/srv/Trigger fields.
 """
 
 from __future__ import annotations
@@ -120,6 +122,7 @@ class DashboardServer:
             logger.removeHandler(self._log)
             raise UsageError(f"foxglove_port: cannot listen on {host}:{port} ({exc})") from None
         self._queue: deque[tuple[str, dict, int]] = deque()
+        self._changed_parameters: dict[str, Any] = {}  # to send to the parameter subscribers
         self._latest: dict[str, tuple[dict, int]] = {}
         # (client id, channel) -> when it subscribed: send it the channel's latest message, unless broadcast since
         self._resend: dict[tuple[int, str], float] = {}
@@ -163,6 +166,13 @@ class DashboardServer:
                 self._queue.append((name, message, log_time))
         self._wake.set()
 
+    def parameters_changed(self, values: dict[str, Any]) -> None:
+        """Queue changed parameter values for the clients subscribed to them; returns at once (the
+        SDK is not called from the parameter callback, which may run inside an SDK callback)."""
+        with self._lock:
+            self._changed_parameters.update(values)
+        self._wake.set()
+
     def diagnostics(self) -> dict[str, int]:
         """The counters for /diagnostics (plus the current clients' subscriptions)."""
         return {**self.counts, "foxglove_subscriptions": len(self._subscriptions)}
@@ -204,12 +214,15 @@ class DashboardServer:
             now = time.monotonic()
             with self._lock:
                 items, self._queue = list(self._queue), deque()
+                changed, self._changed_parameters = self._changed_parameters, {}
                 due = {key: self._resend.pop(key) for key in list(self._resend)
                        if now - self._last_resend.get(key[0], -RESEND_PERIOD) >= RESEND_PERIOD}
             for name, message, log_time in items:
                 self._latest[name] = (message, log_time)
                 self._send(name, message, log_time)
                 self._broadcast[name] = time.monotonic()  # after: a client subscribed before has it
+            if changed:
+                self._server.publish_parameter_values([_parameter(k, v) for k, v in changed.items()])
             for (client_id, name), subscribed in due.items():
                 self._last_resend[client_id] = now
                 # a message broadcast after the subscription reached this client already

@@ -643,6 +643,8 @@ class IdentificationCore:
                     self.stamper.set_rate(config.sample_rate)
         if changed:
             self.get_logger().info("parameters applied: " + ", ".join(f"{k}={proposed[k]}" for k in sorted(changed)))
+            if self.server is not None:
+                self.server.parameters_changed({k: proposed[k] for k in changed})
         self._wake.set()
         return SetParametersResult(successful=True)
 
