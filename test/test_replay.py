@@ -163,9 +163,16 @@ def test_readme_example_runs_as_a_console_script():
     ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--window", "20"], "--window: must be >="),
     ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "0"], "--solve-rate: must be > 0"),
     (["README.md", "--input", "/cmd:data", "--output", "/response:data"], "not a .mcap file"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", "d.json"],
+     "--dashboard-out: d.json: the file name must end in .mcap"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", "/no/such/dir/d.mcap"],
+     "--dashboard-out: /no/such/dir/d.mcap: No such file or directory"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", FLOAT64_BAG],
+     "--dashboard-out: bags/float64_cubic_g1.mcap is the bag being replayed"),
 ])
 def test_bad_input_exits_2_with_one_line(capsys, tmp_path, argv, reason):
     assert main(["replay", *argv, "--out", str(tmp_path / "x.mcap")]) == 2
+    assert not (tmp_path / "x.mcap").exists()  # no output at all
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.count("\n") == 1 and captured.err.startswith("hammer-ros: error: ")

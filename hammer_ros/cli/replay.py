@@ -36,6 +36,7 @@ from ..errors import UsageError
 from ..io.bags import (
     bag_duration,
     bag_message_counts,
+    check_output_path,
     engine_config_from_params,
     forget_warnings,
     load_msg_config,
@@ -159,6 +160,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
     # every user mistake before any output
     check_replay_input(args.bag, excitation, response, args.out, args.dashboard_out)
+    for option, path in (("--out", args.out), ("--dashboard-out", args.dashboard_out)):
+        if path:
+            check_output_path(path, option)
     progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in {excitation.topic, response.topic}))
     publisher = solver = None
     stop = SignalStop()

@@ -21,6 +21,7 @@ import contextlib
 import functools
 import io
 import json
+import os
 import struct
 import sys
 import zlib
@@ -761,11 +762,23 @@ def node_topic(topic: str, node_name: str = "hammer_ros") -> str:
     return f"/{node_name}/{topic[2:]}" if topic.startswith("~/") else topic
 
 
-def _create_mcap(path: str | Path, option: str):
-    """(path, open binary file) of a new ``.mcap`` result file; UsageError naming ``option``."""
+def check_output_path(path: str | Path, option: str) -> Path:
+    """A result file's path, checked before anything is written: a ``.mcap`` name in an existing,
+    writable directory (UsageError naming ``option``)."""
     path = Path(path)
     if path.suffix.lower() != ".mcap":
         raise UsageError(f"{option}: {path}: the file name must end in .mcap")
+    folder = path.parent
+    if not folder.is_dir():
+        raise UsageError(f"{option}: {path}: No such file or directory")
+    if not os.access(folder, os.W_OK):
+        raise UsageError(f"{option}: {path}: Permission denied")
+    return path
+
+
+def _create_mcap(path: str | Path, option: str):
+    """(path, open binary file) of a new ``.mcap`` result file; UsageError naming ``option``."""
+    path = check_output_path(path, option)
     try:
         return path, open(path, "wb")
     except OSError as exc:

@@ -175,9 +175,10 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     writer = ResultWriter(target) if target else None
     try:
         dashboard = JsonWriter(dashboard_out) if dashboard_out else None
-    except UsageError:
+    except UsageError:  # no half of the output either
         if writer:
             writer.close()
+            target.unlink(missing_ok=True)
         raise
     input_stamps = InputStamps()
     last_stamp_ns = 0  # the stamp of the final results
