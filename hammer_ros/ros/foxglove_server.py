@@ -180,18 +180,20 @@ class DashboardServer:
     # ServerListener callbacks (called from the SDK's threads)
     def on_subscribe(self, client, channel) -> None:
         self.counts["foxglove_subscribe_requests"] += 1
-        self._subscriptions.add((client.id, channel.id))
         name = self._by_id.get(channel.id)
-        if name is not None:
-            with self._lock:
+        with self._lock:
+            self._subscriptions.add((client.id, channel.id))
+            if name is not None:
                 self._resend[(client.id, name)] = time.monotonic()
-            self._wake.set()
+        self._wake.set()
 
     def on_unsubscribe(self, client, channel) -> None:
         self.counts["foxglove_unsubscribe_requests"] += 1
-        self._subscriptions.discard((client.id, channel.id))
         with self._lock:
+            self._subscriptions.discard((client.id, channel.id))
             self._resend.pop((client.id, self._by_id.get(channel.id)), None)
+            if not any(c == client.id for c, _ in self._subscriptions):  # gone (also on a disconnect)
+                self._last_resend.pop(client.id, None)
 
     def on_get_parameters(self, client, param_names: list[str], request_id: str | None = None) -> list:
         values = self._parameters.parameter_values()
