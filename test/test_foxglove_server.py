@@ -247,6 +247,8 @@ def test_a_resubscribing_client_sends_no_duplicate_to_another(rig):
         for topic in topics:
             times = watcher.log_times[topic]
             assert len(times) == len(set(times)) and len(times) >= 2, topic  # no message twice
+            schema = CHANNELS[topic.rsplit("/", 1)[1]][1]
+            assert all(mismatches(schema, m) == [] for m in watcher.messages[topic]), topic  # every key declared
     finally:
         watcher.close()
 
