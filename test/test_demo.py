@@ -56,7 +56,7 @@ def _resolve(message: dict, path: str):
 
 def test_dashboard_layout_plots_fields_the_node_publishes():
     """Every path of the Foxglove layout exists in the dashboard channels (``ros.dashboard``) the
-    node serves and ``replay --out`` records, and every channel is shown."""
+    node serves and ``replay --dashboard-out`` records, and every channel is shown."""
     from hammer_ros.identification.simulate import simulate_hammerstein
     from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic
     from hammer_ros.ros.outputs import diagnostics_message, result_messages
@@ -72,11 +72,11 @@ def test_dashboard_layout_plots_fields_the_node_publishes():
     engine.add_response(t, simulate_hammerstein(v, static_map("dead_zone", 0.2), DEMO_PLANT))
     outcome = engine.solve()
     assert outcome.ok, outcome.reason
-    results = result_messages(outcome, 1.0)
+    results = result_messages(outcome, 10**9)
     results.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics_message(engine.stats, outcome,
-                                                                                               1.0)))
+                                                                                               10**9)))
     results.append(("~/diagnosis", "std_msgs/msg/String", {"data": json.dumps({"cause": "none", "samples": 3000})}))
-    messages = {dashboard_topic(channel): message for channel, message in dashboard_messages(results, 1.0)}
+    messages = {dashboard_topic(channel): message for channel, message in dashboard_messages(results, 10**9)}
     assert set(messages) == {dashboard_topic(name) for name in CHANNELS}
 
     panels = json.dumps(layout["layout"])

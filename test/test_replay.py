@@ -14,6 +14,7 @@ import pytest
 from make_sample_bags import G1, RESONANT
 
 from hammer_ros.cli import main
+from hammer_ros.diagnosis.causes import CAUSES
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
 
@@ -54,18 +55,40 @@ def test_replay_of_a_rosbags_bag_equals_identify_on_the_same_samples(capsys):
 
 
 def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
+    """Every message of --out deserialises in rosbags, stamped exactly as the input sample it was
+    solved at; --dashboard-out holds the dashboard channels, each message declared by its schema."""
+    from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
+    from schema_check import mismatches
 
-    out = tmp_path / "results.mcap"
+    out, dashboard_out = tmp_path / "results.mcap", tmp_path / "dashboard.mcap"
     doc = run_json(capsys, "replay", FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml",
-                   "--solve-rate", "1", "--out", str(out), "--json")
+                   "--solve-rate", "1", "--out", str(out), "--dashboard-out", str(dashboard_out), "--json")
     with AnyReader([out]) as reader:
-        ros = [c for c in reader.connections if c.ext.serialization_format == "cdr"]
-        types = {c.topic: c.msgtype for c in ros}
-        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages(ros)]
-        dashboard = {c.topic: c.msgtype for c in reader.connections if c not in ros}  # Foxglove's JSON channels
-    assert dashboard == {dashboard_topic(name): CHANNELS[name][0] for name in
-                         ("model", "poles", "zeros", "nonlinearity", "fit", "diagnostics")}
+        assert {c.ext.serialization_format for c in reader.connections} == {"cdr"}  # nothing else for ROS readers
+        types = {c.topic: c.msgtype for c in reader.connections}
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+    with AnyReader([Path(FLOAT64_BAG)]) as reader:
+        input_stamps = {t for c, t, _ in reader.messages() if c.topic == "/cmd"}
+    assert all(t in input_stamps for _, t, _ in messages)  # integer ns, exactly the input's
+    assert all(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == t
+               for _, t, msg in messages if hasattr(msg, "header"))
+    with open(dashboard_out, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        channels = {c.topic: (c.message_encoding, summary.schemas[c.schema_id]) for c in summary.channels.values()}
+        dashboard = [(c.topic, m.log_time, json.loads(m.data)) for _, c, m in reader.iter_messages()]
+    solved = [name for name in CHANNELS if not name.startswith("diagnosis")]  # no --diagnose
+    assert set(channels) == {dashboard_topic(name) for name in solved}
+    for name in solved:
+        schema_name, schema = CHANNELS[name]
+        encoding, stored = channels[dashboard_topic(name)]
+        assert (encoding, stored.name, stored.encoding, json.loads(stored.data)) == ("json", schema_name,
+                                                                                     "jsonschema", schema)
+    for topic, log_time, message in dashboard:
+        assert mismatches(CHANNELS[topic.rsplit("/", 1)[1]][1], message) == [], topic
+        assert log_time in input_stamps
+        assert log_time == message["timestamp"]["sec"] * 10**9 + message["timestamp"]["nsec"]
     joint_state = "sensor_msgs/msg/JointState"
     assert types == {"/hammer_ros/model": "std_msgs/msg/String", "/hammer_ros/poles": joint_state,
                      "/hammer_ros/zeros": joint_state, "/hammer_ros/markov": joint_state,
@@ -82,7 +105,7 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
             by_topic["/hammer_ros/model"], by_topic["/hammer_ros/poles"], by_topic["/hammer_ros/markov"],
             by_topic["/hammer_ros/nonlinearity"]):
         model_doc = json.loads(model.data)
-        assert t_model == t_poles == round(model_doc["stamp"] * 1e9)
+        assert t_model == t_poles == pytest.approx(model_doc["stamp"] * 1e9, abs=200)  # float s, ns exactly
         assert pole_msg.header.stamp.sec + 1e-9 * pole_msg.header.stamp.nanosec == pytest.approx(model_doc["stamp"])
         assert list(pole_msg.name) == [f"p{i}_{part}" for i in range(3) for part in ("re", "im")]
         np.testing.assert_array_equal(pole_msg.position, np.ravel(model_doc["poles"]))
@@ -99,6 +122,25 @@ def test_replay_out_mcap_is_read_back_intact_by_rosbags(capsys, tmp_path):
     assert int(values["aligned"]) == 6000 and int(values["nan_skipped"]) == 0
     first = by_topic["/diagnostics"][0][1].status[0]
     assert first.level == 1 and first.message.startswith("window")
+
+
+def test_replay_diagnose_writes_the_final_diagnosis_into_both_files(capsys, tmp_path):
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    out, dashboard_out = tmp_path / "results.mcap", tmp_path / "dashboard.mcap"
+    doc = run_json(capsys, "replay", JOINT_BAG, "--config", "msg_config/joint_state_saturation.yaml", "--solve-rate",
+                   "1", "--out", str(out), "--dashboard-out", str(dashboard_out), "--diagnose", "--json")
+    assert doc["diagnosis"]["samples"] == 4000 and doc["diagnosis"]["cause"] in CAUSES  # the final window
+    with AnyReader([out]) as reader:
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+    diagnosis = [(t, json.loads(msg.data)) for topic, t, msg in messages if topic == "/hammer_ros/diagnosis"]
+    assert [d for _, d in diagnosis] == [doc["diagnosis"]]
+    assert diagnosis[0][0] == max(t for _, t, _ in messages)  # stamped as the final results
+    with open(dashboard_out, "rb") as f:
+        dashboard = {c.topic: json.loads(m.data) for _, c, m in make_reader(f).iter_messages()}
+    assert {k: v for k, v in dashboard[dashboard_topic("diagnosis")].items() if k != "timestamp"} == doc["diagnosis"]
+    assert dashboard[dashboard_topic("diagnosis_log")]["message"].startswith("diagnosis of 4000 samples")
 
 
 def test_readme_example_runs_as_a_console_script():
@@ -121,9 +163,16 @@ def test_readme_example_runs_as_a_console_script():
     ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--window", "20"], "--window: must be >="),
     ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--solve-rate", "0"], "--solve-rate: must be > 0"),
     (["README.md", "--input", "/cmd:data", "--output", "/response:data"], "not a .mcap file"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", "d.json"],
+     "--dashboard-out: d.json: the file name must end in .mcap"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", "/no/such/dir/d.mcap"],
+     "--dashboard-out: /no/such/dir/d.mcap: No such file or directory"),
+    ([FLOAT64_BAG, "--config", "msg_config/float64_cubic_g1.yaml", "--dashboard-out", FLOAT64_BAG],
+     "--dashboard-out: bags/float64_cubic_g1.mcap is the bag being replayed"),
 ])
 def test_bad_input_exits_2_with_one_line(capsys, tmp_path, argv, reason):
     assert main(["replay", *argv, "--out", str(tmp_path / "x.mcap")]) == 2
+    assert not (tmp_path / "x.mcap").exists()  # no output at all
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.count("\n") == 1 and captured.err.startswith("hammer-ros: error: ")

@@ -106,7 +106,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=positive_int, default=None, help="window length W (samples)")
     p.add_argument("--sample-rate", type=float, default=None, help="sample grid rate in Hz (default: inferred)")
     p.add_argument("--solve-rate", type=float, default=None, help="solves per second of bag time")
-    p.add_argument("--out", default=None, metavar="OUT.mcap", help="write every result into this MCAP")
+    p.add_argument("--out", default=None, metavar="OUT.mcap", help="write every result into this MCAP (ROS 2 messages)")
+    p.add_argument("--dashboard-out", default=None, metavar="DASH.mcap",
+                   help="write the Foxglove dashboard channels (JSON with JSON schemas) into this MCAP")
+    p.add_argument("--diagnose", action="store_true", help="also diagnose the final window (written as ~/diagnosis)")
     p.add_argument("--rate", type=float, default=None, help="play at this multiple of real time on the ROS graph")
     p.add_argument("--forgetting", type=float, default=None, help="exponential forgetting factor (default 1: window)")
     p.add_argument("--interpolation", choices=("zoh", "linear"), default=None, help="alignment (default zoh)")

@@ -3,7 +3,10 @@
 As fast as possible by default (messages are buffered and added to the engine in vectorised
 batches between solves); ``--rate R`` paces the bag at R x real time and publishes the results
 on the live ROS 2 graph under the node name ``hammer_ros`` (the node's topics, so the same
-dashboard works); ``--out`` writes every result (``outputs``) into an MCAP file.
+dashboard works); ``--out`` writes every result (``outputs``, ROS 2 messages only) into an MCAP
+file, ``--dashboard-out`` their Foxglove dashboard channels (JSON) into another; ``--diagnose``
+diagnoses the final window and adds it to both (``~/diagnosis``, the dashboard's diagnosis
+channels) and to the JSON.
 
 The loop itself is ``hammer_ros.io.replay.replay_bag`` (also each ``hammer-ros fleet`` task).
 SIGINT/SIGTERM stop it at the next message: a final solve on what was read, ``--out`` finished
@@ -33,6 +36,7 @@ from ..errors import UsageError
 from ..io.bags import (
     bag_duration,
     bag_message_counts,
+    check_output_path,
     engine_config_from_params,
     forget_warnings,
     load_msg_config,
@@ -154,15 +158,20 @@ def run(args: argparse.Namespace) -> int:
     config, solve_rate = replay_settings(args, params, source)
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
-    check_replay_input(args.bag, excitation, response, args.out)  # every user mistake before any output
+    # every user mistake before any output
+    check_replay_input(args.bag, excitation, response, args.out, args.dashboard_out)
+    for option, path in (("--out", args.out), ("--dashboard-out", args.dashboard_out)):
+        if path:
+            check_output_path(path, option)
     progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in {excitation.topic, response.topic}))
     publisher = solver = None
     stop = SignalStop()
     try:
         if args.rate is None and expected_solve_seconds(config, solve_rate * bag_duration(args.bag)) >= OVERLAP_SECONDS:
-            # Forked: no thread, no middleware yet, so the worker starts loaded. Documents only for --out
-            # (without it, only the last good model's is printed).
-            solver = SolverProcess("fork", SOLVE_BATCH, documents=args.out is not None)
+            # Forked: no thread, no middleware yet, so the worker starts loaded. Documents only for files
+            # (without them, only the last good model's is printed).
+            written = args.out is not None or args.dashboard_out is not None
+            solver = SolverProcess("fork", SOLVE_BATCH, documents=written)
         if args.rate is not None:
             from ..ros.live_publisher import LivePublisher  # rclpy only for --rate
 
@@ -170,7 +179,8 @@ def run(args: argparse.Namespace) -> int:
         stop.__enter__()  # after rclpy.init, which installs its own handlers
         result = replay_bag(args.bag, excitation, response, config, solve_rate,
                             frame_id=str(params.get("frame_id", "")), out=args.out, publisher=publisher,
-                            rate=args.rate, stop=stop, solver=solver,
+                            rate=args.rate, stop=stop, solver=solver, dashboard_out=args.dashboard_out,
+                            diagnose=args.diagnose,
                             progress=lambda done, samples, solves, force: progress.update(done, samples, solves, force))
     finally:
         progress.close()
@@ -182,11 +192,12 @@ def run(args: argparse.Namespace) -> int:
         finally:
             stop.__exit__()
     result.read.report(args.bag)
+    files = ", ".join(str(Path(p)) for p in (args.out, args.dashboard_out) if p)
     if stop.signal is not None:
         name = signal.Signals(stop.signal).name
         print(f"hammer-ros: replay stopped by {name} after {result.messages} of {result.total} messages; final model "
               f"solved on the {result.stats.aligned} samples read"
-              + (f"; {result.written} messages in {args.out}" if args.out else ""), file=sys.stderr)
+              + (f"; {result.written} messages in {files}" if files else ""), file=sys.stderr)
         if result.last_ok is None:
             reason = result.last.reason if result.last else "no messages"
             print(f"hammer-ros: no model identified ({reason})", file=sys.stderr)
@@ -200,5 +211,7 @@ def run(args: argparse.Namespace) -> int:
         rate = result.stats.aligned / wall if wall > 0 else float("inf")
         print(format_model(doc))
         print(f"replay   {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s ({rate:,.0f} samples/s)"
-              + (f"; {result.written} messages -> {Path(args.out)}" if args.out else ""))
+              + (f"; {result.written} messages -> {files}" if files else ""))
+        if result.diagnosis is not None:
+            print(f"diagnosis {result.diagnosis.get('cause', result.diagnosis.get('error'))}")
     return 0 if stop.signal is None else 128 + stop.signal

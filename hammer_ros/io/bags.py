@@ -11,7 +11,8 @@ header (an all-zero stamp counts as unset), else the bag's log time; a message w
 
 Writing (``ResultWriter``) uses the ``mcap_ros2`` writer with the ``.msg`` definitions shipped in
 ``hammer_ros/data/ros2_msgs`` (Jazzy's, see the README there), so Foxglove Studio, rosbag2 and
-``rosbags`` can open the file.
+``rosbags`` can open the file and deserialise every message; the JSON dashboard channels go into
+a file of their own (``JsonWriter``, with their JSON schemas).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import contextlib
 import functools
 import io
 import json
+import os
 import struct
 import sys
 import zlib
@@ -32,7 +34,7 @@ import numpy as np
 import yaml
 
 from ..errors import UsageError
-from ..ros.field_path import FieldPath, extract_samples, message_stamp, parse_field_path
+from ..ros.field_path import FieldPath, extract_samples, message_stamp, message_stamp_ns, parse_field_path
 from ..streaming.aligner import StreamAligner
 from ..streaming.config import EngineConfig, EngineStats
 from .records import Record
@@ -586,6 +588,7 @@ class BagSample:
     stamp: float  # header stamp or log time (s): the time of the LAST sample
     values: np.ndarray | float  # a float: one sample
     log_time: int  # ns
+    stamp_ns: int  # ``stamp`` exactly, in integer ns (float seconds of an epoch time are 238 ns apart)
 
 
 def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
@@ -613,19 +616,19 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
         extractors = readers[key]
         if extractors is not None:
             try:
-                return _Read([extract(record.data) for extract in extractors])
+                return _Read([extract(record.data) for extract in extractors], header_stamp_ns(record.data))
             except (UsageError, ValueError, IndexError):
                 pass  # the full decode says what is wrong
         return _decode_message(file, decoders, channel, record, stats)
 
     for log_time, topic, msg in _bag_records(path, list(roles), stats, decode):
         if isinstance(msg, _Read):
-            stamp = msg.fields[0][1] or log_time * 1e-9
+            stamp, stamp_ns = (msg.fields[0][1], msg.stamp_ns) if msg.fields[0][1] else (log_time * 1e-9, log_time)
             for (role, _), (values, _) in zip(roles[topic], msg.fields, strict=True):
-                yield BagSample(role, stamp, values, log_time)
+                yield BagSample(role, stamp, values, log_time, stamp_ns)
             continue
         stamp = message_stamp(msg)
-        stamp = log_time * 1e-9 if not stamp else stamp
+        stamp, stamp_ns = (log_time * 1e-9, log_time) if not stamp else (stamp, message_stamp_ns(msg))
         for role, spec in roles[topic]:
             try:
                 values = extract_samples(msg, spec.field)
@@ -633,14 +636,26 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
                 stats.field_errors[topic] = stats.field_errors.get(topic, 0) + 1
                 stats.note(topic, str(exc))
                 continue
-            yield BagSample(role, stamp, values, log_time)
+            yield BagSample(role, stamp, values, log_time, stamp_ns)
+
+
+def header_stamp_ns(data: bytes) -> int:
+    """The header stamp (integer ns) of a serialized message whose first field is a
+    std_msgs/Header (what ``cdr`` reads a stamp from: sec, nanosec right after the 4-byte
+    encapsulation); meaningless for other messages, whose stamp ``cdr`` reports as 0."""
+    if len(data) < 12:
+        return 0
+    sec, nanosec = struct.unpack_from(">iI" if data[1] == 0 else "<iI", data, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 @dataclass(frozen=True, eq=False)
 class _Read:
-    """(values, stamp) of each role's field, read from the serialized message."""
+    """(values, stamp) of each role's field, read from the serialized message, and its header
+    stamp in integer ns."""
 
     fields: list
+    stamp_ns: int
 
 
 def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSpec]]) -> list | None:
@@ -747,23 +762,60 @@ def node_topic(topic: str, node_name: str = "hammer_ros") -> str:
     return f"/{node_name}/{topic[2:]}" if topic.startswith("~/") else topic
 
 
-class ResultWriter:
-    """An MCAP file of ROS 2 messages given as dicts (``outputs`` form); use as a context manager
-    (the file is finished and closed on exit, also after an error)."""
+def check_output_path(path: str | Path, option: str) -> Path:
+    """A result file's path, checked before anything is written: a ``.mcap`` name in an existing,
+    writable directory (UsageError naming ``option``)."""
+    path = Path(path)
+    if path.suffix.lower() != ".mcap":
+        raise UsageError(f"{option}: {path}: the file name must end in .mcap")
+    folder = path.parent
+    if not folder.is_dir():
+        raise UsageError(f"{option}: {path}: No such file or directory")
+    if not os.access(folder, os.W_OK):
+        raise UsageError(f"{option}: {path}: Permission denied")
+    return path
+
+
+def _create_mcap(path: str | Path, option: str):
+    """(path, open binary file) of a new ``.mcap`` result file; UsageError naming ``option``."""
+    path = check_output_path(path, option)
+    try:
+        return path, open(path, "wb")
+    except OSError as exc:
+        raise UsageError(f"{option}: {path}: {exc.strerror}") from None
+
+
+class _McapFile:
+    """The context manager of the result writers: the file is finished and closed on exit, also
+    after an error."""
+
+    _file: Any
+    _writer: Any
+
+    def close(self) -> None:
+        if not self._file.closed:
+            try:
+                self._writer.finish()
+            finally:
+                self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ResultWriter(_McapFile):
+    """An MCAP file of ROS 2 messages given as dicts (``outputs`` form), nothing else: every
+    message deserialises in a ROS 2 reader (rosbags, rosbag2) and in Foxglove."""
 
     def __init__(self, path: str | Path, option: str = "--out") -> None:
         from mcap_ros2.writer import Writer
 
-        self.path = Path(path)
-        if self.path.suffix.lower() != ".mcap":
-            raise UsageError(f"{option}: {self.path}: the file name must end in .mcap")
-        try:
-            self._file = open(self.path, "wb")
-        except OSError as exc:
-            raise UsageError(f"{option}: {self.path}: {exc.strerror}") from None
+        self.path, self._file = _create_mcap(path, option)
         self._writer = Writer(self._file)
         self._schemas: dict[str, Any] = {}
-        self._json_channels: dict[str, int] = {}
         self.count = 0
 
     def write(self, topic: str, type_name: str, message: dict, log_time_ns: int) -> None:
@@ -774,27 +826,31 @@ class ResultWriter:
         self._writer.write_message(topic, schema, message, log_time=int(log_time_ns), publish_time=int(log_time_ns))
         self.count += 1
 
-    def write_json(self, topic: str, schema_name: str, message: dict, log_time_ns: int) -> None:
-        """One JSON message (the Foxglove dashboard channels). The schema is named but carries no
-        JSON schema text (encoding ''): ROS 2 bag readers (rosbags) reject a 'jsonschema' schema and
-        would then not open the file at all; Foxglove reads the fields from the messages."""
-        mcap = self._writer._writer  # the mcap writer under mcap_ros2's (no public accessor)
-        channel = self._json_channels.get(topic)
+
+class JsonWriter(_McapFile):
+    """An MCAP file of JSON messages, each channel with its JSON schema (message encoding
+    ``json``, schema encoding ``jsonschema``: what Foxglove reads; the Foxglove dashboard
+    channels of ``replay --dashboard-out``). Kept apart from the ROS 2 results, whose readers
+    reject a JSON channel."""
+
+    def __init__(self, path: str | Path, option: str = "--dashboard-out") -> None:
+        from mcap.writer import Writer
+
+        self.path, self._file = _create_mcap(path, option)
+        self._writer = Writer(self._file)
+        self._writer.start(profile="", library="hammer_ros")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self.count = 0
+
+    def write(self, topic: str, schema_name: str, schema: dict, message: dict, log_time_ns: int) -> None:
+        channel = self._channels.get(topic)
         if channel is None:
-            schema_id = mcap.register_schema(schema_name, "", b"")
-            channel = self._json_channels[topic] = mcap.register_channel(topic, "json", schema_id)
-        mcap.add_message(channel, int(log_time_ns), json.dumps(message, allow_nan=False).encode(), int(log_time_ns))
+            schema_id = self._schemas.get(schema_name)
+            if schema_id is None:
+                schema_id = self._schemas[schema_name] = self._writer.register_schema(
+                    schema_name, "jsonschema", json.dumps(schema).encode())
+            channel = self._channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+        self._writer.add_message(channel, int(log_time_ns), json.dumps(message, allow_nan=False).encode(),
+                                 int(log_time_ns))
         self.count += 1
-
-    def close(self) -> None:
-        if not self._file.closed:
-            try:
-                self._writer.finish()
-            finally:
-                self._file.close()
-
-    def __enter__(self) -> ResultWriter:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

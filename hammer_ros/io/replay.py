@@ -33,13 +33,20 @@ import numpy as np
 
 from ..errors import IdentificationError, UsageError
 from ..ros.dashboard import record_results
-from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
+from ..ros.outputs import (
+    diagnosis_message,
+    diagnostics_message,
+    result_messages,
+    seconds_to_ns,
+    stale_model_message,
+)
 from ..streaming.config import EngineConfig, EngineStats
 from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome, estimate_snapshot, portable_estimate
-from ..streaming.solver_process import SolverProcess
+from ..streaming.solver_process import SolverProcess, diagnose_window
 from .bags import (
     FLUSH_SAMPLES,
     BagReadStats,
+    JsonWriter,
     ResultWriter,
     StreamSpec,
     bag_files,
@@ -55,6 +62,33 @@ SOLVE_BATCH = 8  # snapshots per transfer to a SolverProcess (one wake-up of the
 # Solves in flight from which the reading loop estimates the next snapshot itself (the worker behind:
 # more than the batch it solves and the one being filled); the worker only decides those.
 OWNER_ESTIMATES_FROM = 2 * SOLVE_BATCH
+DIAGNOSIS_WINDOW = 10_000  # newest samples diagnosed (the node's ``diagnosis_window`` default)
+STAMP_HISTORY = 4096  # excitation messages whose exact stamps a result can take (InputStamps)
+STAMP_TOLERANCE = 1e-6  # s: a grid time this close to an input stamp is that stamp (float rounding)
+
+
+class InputStamps:
+    """The integer-ns stamps of the newest excitation messages, so that a result gets exactly
+    the stamp of the input sample at its grid time. The engine works in float seconds, 238 ns
+    apart at epoch times, so the grid time turned back into ns missed the input's stamp by up
+    to ~120 ns (128 ns on the sample bags); the grid points are the excitation's stamps (or
+    fall on them up to rounding), and a grid time within STAMP_TOLERANCE of one takes its
+    integer stamp. Other grid times (a sample rate off the input's, the inner samples of a
+    batch message) are rounded to the nearest ns."""
+
+    def __init__(self) -> None:
+        self._stamps: deque[tuple[float, int]] = deque(maxlen=STAMP_HISTORY)
+
+    def add(self, stamp: float, stamp_ns: int) -> None:
+        self._stamps.append((stamp, stamp_ns))
+
+    def exact(self, stamp: float) -> int:
+        for seconds, ns in reversed(self._stamps):
+            if abs(seconds - stamp) <= STAMP_TOLERANCE:
+                return ns
+            if seconds < stamp - STAMP_TOLERANCE:
+                break
+        return seconds_to_ns(stamp)
 
 
 class Publisher(Protocol):
@@ -81,10 +115,11 @@ class ReplayResult:
     messages: int  # messages read
     total: int  # messages of the two topics in the bag
     wall_s: float
-    written: int  # messages written into ``out``
+    written: int  # messages written into ``out`` (and ``dashboard_out``)
     first_stamp: float  # bag time (s) of the first and last sample read (nan: none)
     last_stamp: float
     window: tuple[np.ndarray, np.ndarray] | None = None  # the final raw window (v, y), with keep_window
+    diagnosis: dict | None = None  # the final window's diagnosis (the ``~/diagnosis`` JSON), with diagnose
 
     def document(self) -> dict:
         """The ``replay --json`` document: the last good model's ``identify`` keys plus
@@ -94,17 +129,22 @@ class ReplayResult:
             raise IdentificationError(f"{self.bag}: no model identified ({reason})")
         doc = dict(self.last_ok.doc)
         doc.update(samples=int(self.stats.aligned), solves=int(self.stats.solves), wall_s=round(self.wall_s, 4))
+        if self.diagnosis is not None:
+            doc["diagnosis"] = self.diagnosis
         return doc
 
 
 def check_replay_input(bag: str | Path, excitation: StreamSpec, response: StreamSpec,
-                       out: str | Path | None = None) -> None:
+                       out: str | Path | None = None, dashboard_out: str | Path | None = None) -> None:
     """Every user mistake about the bag before any output: its topics, their fields, and an
-    ``out`` that would overwrite the bag (UsageError)."""
+    ``out`` or ``dashboard_out`` that would overwrite the bag or each other (UsageError)."""
     check_topics(bag, (excitation, response))
     check_fields(bag, (excitation, response))
-    if out and any(Path(out).resolve() == f.resolve() for f in bag_files(bag)):
-        raise UsageError(f"--out: {out} is the bag being replayed (it would be overwritten)")
+    for option, path in (("--out", out), ("--dashboard-out", dashboard_out)):
+        if path and any(Path(path).resolve() == f.resolve() for f in bag_files(bag)):
+            raise UsageError(f"{option}: {path} is the bag being replayed (it would be overwritten)")
+    if out and dashboard_out and Path(out).resolve() == Path(dashboard_out).resolve():
+        raise UsageError(f"--dashboard-out: {dashboard_out} is also --out (two files are needed)")
 
 
 def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, config: EngineConfig,
@@ -112,11 +152,14 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                publisher: Publisher | None = None, rate: float | None = None, stop: Stop | None = None,
                progress: Callable[[int, int, int, bool], None] | None = None,
                node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False,
-               solver: SolverProcess | None = None) -> ReplayResult:
+               solver: SolverProcess | None = None, dashboard_out: str | Path | None = None,
+               diagnose: bool = False, diagnosis_window: int = DIAGNOSIS_WINDOW) -> ReplayResult:
     """Replay ``bag`` (checked by ``check_replay_input``) through a new engine.
 
     ``out``: write every result message into this MCAP (with ``atomic``: under a temporary name,
-    renamed when complete, so that a reader never sees half a file); ``publisher`` with ``rate``:
+    renamed when complete, so that a reader never sees half a file); ``dashboard_out``: their
+    Foxglove dashboard channels (JSON) into this one; ``diagnose``: diagnose the final window
+    (as the node's ``~/diagnosis``, stamped as the final result) and write it; ``publisher`` with ``rate``:
     pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
     ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
     ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads);
@@ -130,52 +173,71 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     last: SolveOutcome | None = None
     target = (Path(out).with_name(f".{Path(out).stem}.partial.mcap") if atomic else Path(out)) if out else None
     writer = ResultWriter(target) if target else None
+    try:
+        dashboard = JsonWriter(dashboard_out) if dashboard_out else None
+    except UsageError:  # no half of the output either
+        if writer:
+            writer.close()
+            target.unlink(missing_ok=True)
+        raise
+    input_stamps = InputStamps()
+    last_stamp_ns = 0  # the stamp of the final results
     done = 0
     started = time.perf_counter()
 
-    in_flight: deque = deque()  # (counters at the snapshot, read statistics then, bag time) of solves in the solver
+    in_flight: deque = deque()  # (counters at the snapshot, read statistics then, its stamp) of solves in the solver
     share = solver is not None and portable_estimate(config)  # the loop may estimate for a worker behind
 
-    def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], bag_time: float) -> None:
-        nonlocal last_ok, last
+    def stamp_of(grid_time: float) -> int:
+        """The exact stamp of a solve at ``grid_time`` (taken when it is solved or submitted,
+        while its input stamps are at hand); the last sample's before the first grid point."""
+        return input_stamps.exact(grid_time) if math.isfinite(grid_time) else bag_time_ns
+
+    def emit(outcome: SolveOutcome, stats: EngineStats, read_values: list[dict], stamp_ns: int) -> None:
+        nonlocal last_ok, last, last_stamp_ns
         last = outcome
         last_ok = last if last.ok else last_ok
-        if writer is None and publisher is None:  # nobody reads the messages (replay --json)
+        last_stamp_ns = stamp_ns
+        if writer is None and dashboard is None and publisher is None:  # nobody reads the messages (--json)
             return
-        stamp = next((s for s in (last.stamp, bag_time) if math.isfinite(s)), 0.0)
-        messages = result_messages(last, stamp, frame_id)
+        messages = result_messages(last, last_stamp_ns, frame_id)
         if not last.ok and last_ok is not None:
             messages.append(stale_model_message(last_ok, last))
-        diagnostics = diagnostics_message(stats, last, stamp, node_name)
+        diagnostics = diagnostics_message(stats, last, last_stamp_ns, node_name)
         diagnostics["status"][0]["values"].extend(read_values)
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-        if writer:  # first into the file (with the Foxglove dashboard channels): whatever is published is in it
-            record_results(writer, messages, stamp, node_name)
+        send(messages, last_stamp_ns)
+
+    def send(messages: list[tuple[str, str, dict]], stamp_ns: int) -> None:
+        # first into the files: whatever is published is in them
+        record_results(writer, messages, stamp_ns, node_name, dashboard_writer=dashboard)
         for topic, type_name, message in messages if publisher else ():
             publisher.publish(topic, type_name, message)
 
     def collect(wait: bool) -> None:
         """Emit the outcomes that have arrived (``wait``: every one in flight), in order."""
         while in_flight and (wait or solver.ready()):
-            stats, read_values, bag_time = in_flight.popleft()
+            stats, read_values, stamp_ns = in_flight.popleft()
             outcome = solver.result()
             engine.record(outcome)
             count_outcome(stats, outcome)
-            emit(outcome, stats, read_values, bag_time)
+            emit(outcome, stats, read_values, stamp_ns)
 
-    def solve(bag_time: float, final: bool = False) -> None:
+    def solve(final: bool = False) -> None:
         engine.flush()
         if solver is None:
-            emit(engine.solve(), engine.stats, bag_values(read), bag_time)
+            outcome = engine.solve()
+            emit(outcome, engine.stats, bag_values(read), stamp_of(outcome.stamp))
             return
         snapshot = engine.snapshot()
         help_worker = share and len(in_flight) >= OWNER_ESTIMATES_FROM
         solver.submit(snapshot, estimate_snapshot(snapshot, solver.documents) if help_worker else None)
-        in_flight.append((snapshot.stats, bag_values(read), bag_time))
+        in_flight.append((snapshot.stats, bag_values(read), stamp_of(snapshot.stamp)))
         collect(wait=final or len(in_flight) > MAX_IN_FLIGHT)
 
     bag_start = next_solve = None
-    bag_time = float("nan")
+    bag_time, bag_time_ns = float("nan"), 0
+    diagnosis = None
     complete = False
     try:
         for sample in iter_bag_samples(bag, excitation, response, read):
@@ -188,24 +250,31 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             if stop is not None and stop.signal is not None:
                 break
             if sample.stamp >= next_solve:
-                solve(sample.stamp)
+                solve()
                 next_solve += math.ceil((sample.stamp - next_solve) * solve_rate + 1e-9) / solve_rate
             engine.add_message(sample.stream, sample.stamp, sample.values, flush=False)
+            if sample.stream == "excitation":
+                input_stamps.add(sample.stamp, sample.stamp_ns)
             if engine.buffered >= FLUSH_SAMPLES:
                 engine.flush()
-            bag_time = sample.stamp
+            bag_time, bag_time_ns = sample.stamp, sample.stamp_ns
             done += 1
             if progress:
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
-        solve(bag_time, final=True)  # the final model, also after a signal
+        solve(final=True)  # the final model, also after a signal
         if solver is not None and last_ok is not None and last_ok.doc is None:  # solved without documents
             documented = solver.document()
             last = documented if last is last_ok else last
             last_ok = documented
+        if diagnose:
+            diagnosis = diagnose_final(engine, config, diagnosis_window)
+            send([diagnosis_message(diagnosis)], last_stamp_ns)
         if progress:
             progress(done, engine.stats.aligned, engine.stats.solves, True)
         complete = True
     finally:
+        if dashboard:
+            dashboard.close()
         if writer:
             writer.close()
             if atomic and complete:
@@ -217,8 +286,22 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     if keep_window:
         snapshot = engine.snapshot()
         window = (snapshot.v, snapshot.y)
+    written = (writer.count if writer else 0) + (dashboard.count if dashboard else 0)
     return ReplayResult(str(bag), last_ok, last, engine.stats, read, done, total, time.perf_counter() - started,
-                        writer.count if writer else 0, first, bag_time, window)
+                        written, first, bag_time, window, diagnosis)
+
+
+def diagnose_final(engine: StreamingEngine, config: EngineConfig, newest: int) -> dict:
+    """The node's ``~/diagnosis`` JSON of the newest ``newest`` samples of the engine's window
+    (``diagnose_window``: estimation on the first 70 %, validation on the rest) with
+    ``samples``, ``stamp`` (grid time, s) and ``seconds``."""
+    snapshot = engine.snapshot()
+    v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+    started = time.perf_counter()
+    doc = {"samples": int(v.size), "stamp": snapshot.stamp if math.isfinite(snapshot.stamp) else None}
+    doc |= diagnose_window(v, y, config.order)
+    doc["seconds"] = time.perf_counter() - started
+    return doc
 
 
 def bag_values(read: BagReadStats) -> list[dict]:

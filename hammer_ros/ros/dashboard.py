@@ -20,13 +20,43 @@ import json
 import math
 from typing import Any
 
-from ..io.bags import node_topic
+from ..io.bags import JsonWriter, ResultWriter, node_topic
+from .outputs import checked_ns
 
-_TIME = {"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
-_NUMBERS = {"type": "array", "items": {"type": "number"}}
-_POINTS = {"type": "array", "items": {"type": "object", "properties": {"x": {"type": "number"},
-                                                                        "y": {"type": "number"}}}}
+# JSON schema building blocks. Every key a channel's messages can carry is declared (test_dashboard
+# checks the messages of a replay and of a live node against them); an object whose keys depend on
+# the method or the cause (``_OPEN``) declares its known keys and takes others as ``additionalProperties``.
+_NUMBER, _INTEGER, _STRING, _BOOLEAN = ({"type": t} for t in ("number", "integer", "string", "boolean"))
 _NUMBER_OR_NULL = {"type": ["number", "null"]}
+_NUMBERS = {"type": "array", "items": _NUMBER}
+_PAIRS = {"type": "array", "items": _NUMBERS}  # [[re, im], ...], [[u, F(u)], ...]
+_ANY: dict[str, Any] = {}
+
+
+def _object(properties: dict[str, Any], nullable: bool = False, others: dict[str, Any] | None = None) -> dict:
+    schema: dict[str, Any] = {"type": ["object", "null"] if nullable else "object", "properties": properties}
+    if others is not None:
+        schema["additionalProperties"] = others
+    return schema
+
+
+def _list_of(properties: dict[str, Any]) -> dict:
+    return {"type": "array", "items": _object(properties)}
+
+
+_TIME = _object({"sec": _INTEGER, "nsec": _INTEGER})
+_POINTS = _list_of({"x": _NUMBER, "y": _NUMBER})
+_MAP = _object({"kind": _STRING, "coefficients": _NUMBERS, "breakpoints": _NUMBERS, "slopes": _NUMBERS,
+                "points": _PAIRS, "points_std": _NUMBERS}, others=_ANY)  # a static map F (identify --json)
+_LINEAR = _object({"a": _NUMBERS, "b": _NUMBERS, "poles": _PAIRS, "zeros": _PAIRS, "order": _INTEGER}, others=_ANY)
+# the ``identify --json`` keys (+ the model's uncertainty keys) of a model
+_MODEL = {"method": _STRING, "order": _INTEGER, "poles": _PAIRS, "zeros": _PAIRS, "gain": _NUMBER_OR_NULL,
+          "stable": _BOOLEAN, "a": _NUMBERS, "b": _NUMBERS, "markov": _NUMBERS, "nonlinearity": _MAP,
+          "feedback_nonlinearity": _MAP, "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL,
+          "poles_std": _PAIRS, "zeros_std": _PAIRS, "gain_std": _NUMBER_OR_NULL,
+          "tau_max": _INTEGER, "mu": _INTEGER, "plls": _object({}, others=_ANY), "parallel_path": _LINEAR,
+          "refined": _object({}, others=_ANY)}
+_SCORE = {"structure": _STRING, "rms": _NUMBER, "fit_percent": _NUMBER}
 
 
 def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
@@ -39,26 +69,31 @@ _ROOTS = _schema("hammer_ros.Roots", {"real": _NUMBERS, "imag": _NUMBERS, "magni
 # well-known Foxglove schema, which its Log panel reads)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "model": ("hammer_ros.Model", _schema("hammer_ros.Model", {
-        "method": {"type": "string"}, "order": {"type": "integer"}, "poles": {"type": "array"},
-        "zeros": {"type": "array"}, "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL,
-        "samples": {"type": "integer"}, "stale": {"type": "boolean"}})),
+        **_MODEL, "stamp": _NUMBER_OR_NULL, "samples": _INTEGER, "stale": _BOOLEAN, "stale_reason": _STRING})),
     "poles": ("hammer_ros.Roots", _ROOTS),
     "zeros": ("hammer_ros.Roots", _ROOTS),
     "nonlinearity": ("hammer_ros.Series", _schema("hammer_ros.Series", {"x": _NUMBERS, "y": _NUMBERS,
                                                                         "points": _POINTS})),
     "fit": ("hammer_ros.Fit", _schema("hammer_ros.Fit", {
         "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL, "stale": {"type": ["boolean", "null"]},
-        "window_fill_percent": {"type": "number"}, "samples": {"type": "integer"}})),
-    "diagnosis": ("hammer_ros.Diagnosis", _schema("hammer_ros.Diagnosis", {
-        "cause": {"type": ["string", "null"]}, "confidence": _NUMBER_OR_NULL, "samples": {"type": "integer"},
-        "seconds": {"type": "number"}, "error": {"type": "string"}})),
+        "window_fill_percent": _NUMBER, "samples": _INTEGER})),
+    "diagnosis": ("hammer_ros.Diagnosis", _schema("hammer_ros.Diagnosis", {  # the diagnose --json keys
+        "baseline": _object({**_SCORE, **_MODEL, "delay": _INTEGER, "dead_time": _INTEGER}, others=_ANY),
+        "cause": {"type": ["string", "null"]}, "confidence": _NUMBER_OR_NULL,
+        "evidence": _list_of({"test": _STRING, "value": _NUMBER_OR_NULL, "bound": _NUMBER_OR_NULL,
+                              "passed": _BOOLEAN}),
+        "extended": _object(_SCORE, nullable=True, others=_ANY),  # + the cause's model (its details)
+        "gain": _object({"rms_ratio": _NUMBER}, nullable=True),
+        "candidates": _list_of({"cause": _STRING, "rms_ratio": _NUMBER}),
+        "steps": _list_of({"cause": _STRING, "structure": _STRING, "rms": _NUMBER, "gain": _NUMBER}),
+        "chain_stopped": {"type": ["string", "null"]},
+        "not_fitted": _list_of({"cause": _STRING, "reason": _STRING}),
+        "samples": _INTEGER, "stamp": _NUMBER_OR_NULL, "seconds": _NUMBER, "error": _STRING})),
     "diagnosis_log": ("foxglove.Log", _schema("foxglove.Log", {
         "level": {"type": "integer", "description": "0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal"},
-        "message": {"type": "string"}, "name": {"type": "string"}, "file": {"type": "string"},
-        "line": {"type": "integer"}})),
+        "message": _STRING, "name": _STRING, "file": _STRING, "line": _INTEGER})),
     "diagnostics": ("hammer_ros.Counters", _schema("hammer_ros.Counters", {
-        "level": {"type": "integer"}, "message": {"type": "string"},
-        "values": {"type": "object", "additionalProperties": {"type": ["number", "string"]}}})),
+        "level": _INTEGER, "message": _STRING, "values": _object({}, others={"type": ["number", "string"]})})),
 }
 LOG_INFO, LOG_WARNING, LOG_ERROR = 2, 3, 4
 _CIRCLE = [{"x": math.cos(2 * math.pi * k / 64), "y": math.sin(2 * math.pi * k / 64)} for k in range(65)]
@@ -69,8 +104,8 @@ def dashboard_topic(channel: str, node_name: str = "hammer_ros") -> str:
     return f"/{node_name}/dashboard/{channel}"
 
 
-def _time(stamp_s: float) -> dict[str, int]:
-    ns = int(round(stamp_s * 1e9)) if math.isfinite(stamp_s) and stamp_s > 0 else 0
+def _time(stamp_ns: int) -> dict[str, int]:
+    ns = checked_ns(stamp_ns)
     return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
 
 
@@ -96,15 +131,16 @@ def _log_line(doc: dict) -> tuple[int, str]:
     if cause in (None, "none"):
         return LOG_INFO, f"diagnosis of {doc.get('samples')} samples: the Hammerstein model misses nothing"
     gain = doc.get("gain")
+    ratio = gain.get("rms_ratio") if isinstance(gain, dict) else gain
     return LOG_WARNING, (f"diagnosis of {doc.get('samples')} samples: {cause} (confidence {doc.get('confidence')})"
-                         + (f", extended model gains {gain}" if gain is not None else ""))
+                         + (f", extended model: baseline rms / its rms = {ratio:.3g}" if ratio is not None else ""))
 
 
-def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_s: float) -> list[tuple[str, dict]]:
+def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_ns: int) -> list[tuple[str, dict]]:
     """(channel, JSON message) of every dashboard channel that ``messages`` (the ``outputs``
-    result messages of one solve, or the ``~/diagnosis`` message) update."""
+    result messages of one solve, or the ``~/diagnosis`` message) update, stamped ``stamp_ns``."""
     by_topic = {topic: message for topic, _, message in messages}
-    timestamp = _time(stamp_s)
+    timestamp = _time(stamp_ns)
     out: list[tuple[str, dict]] = []
     model = json.loads(by_topic["~/model"]["data"]) if "~/model" in by_topic else None
     if model is not None:
@@ -137,12 +173,17 @@ def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_s: float) ->
     return out
 
 
-def record_results(writer, messages: list[tuple[str, str, dict]], stamp_s: float, node_name: str,
+def record_results(writer: ResultWriter | None, messages: list[tuple[str, str, dict]], stamp_ns: int,
+                   node_name: str, *, dashboard_writer: JsonWriter | None = None,
                    dashboard: list[tuple[str, dict]] | None = None) -> None:
-    """Write ``messages`` (as ROS 2 messages) and their dashboard channels (as JSON; ``dashboard``
-    when already built) into a ``ResultWriter``."""
-    log_time = round(stamp_s * 1e9)
-    for topic, type_name, message in messages:
-        writer.write(node_topic(topic, node_name), type_name, message, log_time)
-    for channel, message in dashboard if dashboard is not None else dashboard_messages(messages, stamp_s):
-        writer.write_json(dashboard_topic(channel, node_name), CHANNELS[channel][0], message, log_time)
+    """Write ``messages`` (as ROS 2 messages) into ``writer`` and their dashboard channels (as
+    JSON with their schemas; ``dashboard`` when already built) into ``dashboard_writer``, all at
+    log time ``stamp_ns``."""
+    stamp_ns = checked_ns(stamp_ns)
+    if writer is not None:
+        for topic, type_name, message in messages:
+            writer.write(node_topic(topic, node_name), type_name, message, stamp_ns)
+    if dashboard_writer is not None:
+        for channel, message in dashboard if dashboard is not None else dashboard_messages(messages, stamp_ns):
+            schema_name, schema = CHANNELS[channel]
+            dashboard_writer.write(dashboard_topic(channel, node_name), schema_name, schema, message, stamp_ns)

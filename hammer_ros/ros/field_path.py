@@ -139,6 +139,12 @@ def extract_samples(msg: Any, path: FieldPath) -> np.ndarray:
 
 def message_stamp(msg: Any) -> float | None:
     """header.stamp in seconds when the message has a header, else None."""
+    ns = message_stamp_ns(msg)
+    return None if ns is None else ns // 1_000_000_000 + 1e-9 * (ns % 1_000_000_000)
+
+
+def message_stamp_ns(msg: Any) -> int | None:
+    """header.stamp in integer nanoseconds when the message has a header, else None."""
     header = msg.get("header") if isinstance(msg, dict) else getattr(msg, "header", None)
     if header is None:
         return None
@@ -146,5 +152,5 @@ def message_stamp(msg: Any) -> float | None:
     if stamp is None:
         return None
     if isinstance(stamp, dict):
-        return stamp["sec"] + 1e-9 * stamp["nanosec"]
-    return stamp.sec + 1e-9 * stamp.nanosec
+        return int(stamp["sec"]) * 1_000_000_000 + int(stamp["nanosec"])
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)

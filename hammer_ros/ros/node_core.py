@@ -10,7 +10,7 @@ interpreter lock against the callbacks and the ingest thread. Ingestion never wa
 for a solve (a slow solve skips solves, never samples); parameters are validated and
 applied live; a bad message is counted and reported in /diagnostics, never fatal. A solve
 without a new model republishes the last good one marked stale. With ``output_mcap`` every
-published result is also recorded; on SIGINT/SIGTERM the node solves once more, records the
+published result is also recorded (ROS 2 messages only); on SIGINT/SIGTERM the node solves once more, records the
 final model and finishes the file.
 
 Stamps: a message with a non-zero ``header.stamp`` is placed by its stamp (a batch of n samples
@@ -45,7 +45,12 @@ from rcl_interfaces.msg import (  # noqa: E402
     SetParametersResult,
 )
 from rclpy.event_handler import QoSSubscriptionEventType, UnsupportedEventTypeError  # noqa: E402
-from rclpy.exceptions import InvalidHandle, ParameterException, ParameterUninitializedException  # noqa: E402
+from rclpy.exceptions import (  # noqa: E402
+    InvalidHandle,
+    ParameterException,
+    ParameterNotDeclaredException,
+    ParameterUninitializedException,
+)
 from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
@@ -64,6 +69,7 @@ from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
+    diagnosis_message,
     diagnostics_message,
     model_json,
     result_messages,
@@ -137,8 +143,8 @@ PARAMETERS: dict[str, Spec] = {
     "max_pending": Spec(1_000_000, "int", "samples queued per input between the callbacks and the engine; a "
                         "message that does not fit is dropped and counted (queue_dropped)", 1000, 100_000_000,
                         read_only=True),
-    "output_mcap": Spec("", "str", "record every published result in this MCAP file, finished on shutdown "
-                        "(SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
+    "output_mcap": Spec("", "str", "record every published result (ROS 2 messages) in this MCAP file, finished on "
+                        "shutdown (SIGINT/SIGTERM) with the final model; '' = off", read_only=True),
     "foxglove_port": Spec(0, "int", "port of the in-process Foxglove WebSocket server of the dashboard channels; "
                           "0 = off", 0, 65535, read_only=True),
     "foxglove_host": Spec("127.0.0.1", "str", "address the Foxglove server listens on (loopback by default; "
@@ -381,7 +387,8 @@ class IdentificationCore:
             from .foxglove_server import DashboardServer  # the SDK only when asked for
 
             self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
-                                          self._warn_throttled)
+                                          self._warn_throttled, parameters=self,
+                                          services=self.trigger_services.handlers)
         self.engine = StreamingEngine(config)
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
@@ -460,8 +467,9 @@ class IdentificationCore:
         self.trigger_services.close()
         return outcome
 
-    def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
+    def _now(self) -> int:
+        """The node clock in integer nanoseconds (the stamp of what the node publishes)."""
+        return self.get_clock().now().nanoseconds
 
     def _warn_throttled(self, text: str) -> None:
         self.get_logger().warning(text, throttle_duration_sec=5.0)
@@ -585,6 +593,20 @@ class IdentificationCore:
                                     throttle_duration_sec=5.0)
 
     # ------------------------------------------------------------------ parameters
+    def parameter_values(self) -> dict[str, Any]:
+        """The current value of every node parameter (None: unset), for the Foxglove server."""
+        return {name: self._declared_value(name) for name in PARAMETERS}
+
+    def set_parameter_value(self, name: str, value: Any) -> tuple[bool, str]:
+        """Set one parameter as rclpy's SetParameters service does (``set_parameters_atomically``
+        of it alone), so a change from Foxglove is validated exactly as one from ``ros2 param set``
+        and refused with the same reason; (successful, reason)."""
+        try:
+            result = self.set_parameters_atomically([Parameter(name, value=value)])
+        except (ParameterNotDeclaredException, TypeError, ValueError) as exc:  # TypeError: no parameter type
+            return False, str(exc)
+        return result.successful, result.reason
+
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         try:
             current = dict(self.values) if self.engine is not None else {
@@ -621,6 +643,8 @@ class IdentificationCore:
                     self.stamper.set_rate(config.sample_rate)
         if changed:
             self.get_logger().info("parameters applied: " + ", ".join(f"{k}={proposed[k]}" for k in sorted(changed)))
+            if self.server is not None:
+                self.server.parameters_changed({k: proposed[k] for k in changed})
         self._wake.set()
         return SetParametersResult(successful=True)
 
@@ -727,8 +751,7 @@ class IdentificationCore:
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
         doc |= self._diagnosis(v, y)
         doc["seconds"] = time.perf_counter() - started
-        values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
-        self._send([("~/diagnosis", DIAGNOSIS_TYPE, values)], self._now(), publish=self.active)
+        self._send([diagnosis_message(doc)], self._now(), publish=self.active)
         return doc
 
     def _publish(self, outcome: SolveOutcome, stats, publish: bool = True) -> None:
@@ -745,18 +768,17 @@ class IdentificationCore:
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         self._send(messages, stamp, publish)
 
-    def _send(self, messages: list[tuple[str, str, dict]], stamp: float, publish: bool) -> None:
-        """Record ``messages`` and their dashboard channels in output_mcap, hand the dashboard
+    def _send(self, messages: list[tuple[str, str, dict]], stamp_ns: int, publish: bool) -> None:
+        """Record ``messages`` in output_mcap (ROS 2 messages only), hand their dashboard
         channels to the Foxglove server (never waits) and, with ``publish``, publish them."""
         server = self.server
-        dashboard = dashboard_messages(messages, stamp) if server is not None or self._writer is not None else []
         with self._writer_lock:
             if self._writer is not None:
-                record_results(self._writer, messages, stamp, self.get_name(), dashboard)
+                record_results(self._writer, messages, stamp_ns, self.get_name())
         if not publish:
             return
         if server is not None:
-            server.publish(dashboard, stamp)
+            server.publish(dashboard_messages(messages, stamp_ns), stamp_ns)
         try:
             for topic, type_name, values in messages:
                 self._outputs[topic].publish(to_ros_message(type_name, values))

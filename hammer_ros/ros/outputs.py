@@ -20,10 +20,12 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import numbers
 from typing import Any
 
 import numpy as np
 
+from ..identification.result import strict_json
 from ..streaming.config import EngineStats
 from ..streaming.engine import SolveOutcome
 
@@ -38,16 +40,29 @@ OUTPUT_TOPICS: list[tuple[str, str]] = [
 DIAGNOSTIC_OK, DIAGNOSTIC_WARN, DIAGNOSTIC_ERROR, DIAGNOSTIC_STALE = 0, 1, 2, 3
 
 
-def stamp_dict(stamp_s: float) -> dict:
-    """builtin_interfaces/Time of a time in seconds (nan / negative -> 0)."""
-    if not math.isfinite(stamp_s) or stamp_s < 0:
-        return {"sec": 0, "nanosec": 0}
-    ns = int(round(stamp_s * 1e9))
+def seconds_to_ns(stamp_s: float) -> int:
+    """Integer nanoseconds of a time in seconds (nan / negative -> 0). Only for times that are
+    floats at their source (a clock, a computed grid point): an input's stamp stays in integer
+    nanoseconds end to end, since float seconds of an epoch time are 238 ns apart."""
+    return int(round(stamp_s * 1e9)) if math.isfinite(stamp_s) and stamp_s > 0 else 0
+
+
+def checked_ns(stamp_ns: int) -> int:
+    """``stamp_ns`` as a non-negative int; TypeError for a float (seconds passed where integer
+    nanoseconds are expected would otherwise stamp 1.7e9 s as 1.7 s)."""
+    if not isinstance(stamp_ns, numbers.Integral):
+        raise TypeError(f"a stamp must be integer nanoseconds (got {type(stamp_ns).__name__} {stamp_ns!r})")
+    return max(0, int(stamp_ns))
+
+
+def stamp_dict(stamp_ns: int) -> dict:
+    """builtin_interfaces/Time of a time in integer nanoseconds (negative -> 0)."""
+    ns = checked_ns(stamp_ns)
     return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
 
 
-def _header(stamp_s: float, frame_id: str) -> dict:
-    return {"stamp": stamp_dict(stamp_s), "frame_id": frame_id}
+def _header(stamp_ns: int, frame_id: str) -> dict:
+    return {"stamp": stamp_dict(stamp_ns), "frame_id": frame_id}
 
 
 def _joint_state(header: dict, names: list[str], values) -> dict:
@@ -77,11 +92,12 @@ def stale_model_message(last_good: SolveOutcome, outcome: SolveOutcome) -> tuple
     return "~/model", "std_msgs/msg/String", {"data": model_json(last_good, outcome.reason)}
 
 
-def result_messages(outcome: SolveOutcome, stamp_s: float, frame_id: str = "") -> list[tuple[str, str, dict]]:
-    """(topic, type, message dict) for every result topic of a successful solve ([] otherwise)."""
+def result_messages(outcome: SolveOutcome, stamp_ns: int, frame_id: str = "") -> list[tuple[str, str, dict]]:
+    """(topic, type, message dict) for every result topic of a successful solve ([] otherwise),
+    stamped ``stamp_ns`` (integer nanoseconds)."""
     if not outcome.ok or outcome.doc is None:
         return []
-    doc, header = outcome.doc, _header(stamp_s, frame_id)
+    doc, header = outcome.doc, _header(stamp_ns, frame_id)
     markov = list(outcome.markov)
     messages = [
         ("~/model", "std_msgs/msg/String", {"data": model_json(outcome)}),
@@ -99,13 +115,18 @@ def result_messages(outcome: SolveOutcome, stamp_s: float, frame_id: str = "") -
     return messages
 
 
+def diagnosis_message(doc: dict[str, Any]) -> tuple[str, str, dict]:
+    """The ``~/diagnosis`` message (std_msgs/String) holding the diagnosis JSON ``doc``."""
+    return "~/diagnosis", "std_msgs/msg/String", {"data": json.dumps(strict_json(doc), allow_nan=False)}
+
+
 def _value_text(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.6g}"
     return str(value)
 
 
-def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_s: float,
+def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_ns: int,
                         node_name: str = "hammer_ros") -> dict:
     """diagnostic_msgs/msg/DiagnosticArray with one status ``<node_name>: identification``.
 
@@ -161,7 +182,7 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         "hardware_id": node_name,
         "values": [{"key": k, "value": _value_text(v)} for k, v in values.items()],
     }
-    return {"header": _header(stamp_s, ""), "status": [status]}
+    return {"header": _header(stamp_ns, ""), "status": [status]}
 
 
 def message_class(type_name: str):

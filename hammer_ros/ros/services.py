@@ -23,6 +23,27 @@ from std_srvs.srv import Trigger  # noqa: E402
 SERVICES = ("reset", "solve", "diagnose")  # -> the node's reset_window, solve_now, diagnose_now
 
 
+def trigger_handlers(node) -> dict[str, Callable[[], tuple[bool, str]]]:
+    """name -> the Trigger handler of ``node`` (an ``IdentificationCore``) returning (success,
+    message), guarded: a bug answers the call (counted in ``loop_errors``), never ends the node.
+    The ROS services and the Foxglove server's services call these."""
+    methods = {"reset": node.reset_window, "solve": node.solve_now, "diagnose": node.diagnose_now}
+
+    def guarded(name: str, handler: Callable[[], tuple[bool, str]]) -> Callable[[], tuple[bool, str]]:
+        def call() -> tuple[bool, str]:
+            try:
+                return handler()
+            except Exception as exc:  # a bug answers the call, never ends the node
+                node.loop_errors += 1
+                message = f"~/{name} failed: {type(exc).__name__}: {exc}"
+                node.get_logger().error(message, throttle_duration_sec=5.0)
+                return False, message
+
+        return call
+
+    return {name: guarded(name, methods[name]) for name in SERVICES}
+
+
 class NodeServices:
     """Serves the Trigger services of ``node`` (an ``IdentificationCore``) from a thread."""
 
@@ -30,10 +51,10 @@ class NodeServices:
         self.node = rclpy.create_node(f"{node.get_name()}_services", namespace=node.get_namespace(),
                                       context=node.context, use_global_arguments=False,
                                       start_parameter_services=False)
-        handlers = {"reset": node.reset_window, "solve": node.solve_now, "diagnose": node.diagnose_now}
+        self.handlers = trigger_handlers(node)
         base = node.get_fully_qualified_name()
         for name in SERVICES:
-            self.node.create_service(Trigger, f"{base}/{name}", self._callback(name, handlers[name], node))
+            self.node.create_service(Trigger, f"{base}/{name}", self._callback(self.handlers[name]))
         self._executor = SingleThreadedExecutor(context=node.context)
         self._executor.add_node(self.node)
         self._stop = threading.Event()
@@ -41,14 +62,9 @@ class NodeServices:
         self._thread.start()
 
     @staticmethod
-    def _callback(name: str, handler: Callable[[], tuple[bool, str]], node):
+    def _callback(handler: Callable[[], tuple[bool, str]]):
         def on_request(request, response):
-            try:
-                response.success, response.message = handler()
-            except Exception as exc:  # a bug answers the call, never ends the node
-                node.loop_errors += 1
-                response.success, response.message = False, f"~/{name} failed: {type(exc).__name__}: {exc}"
-                node.get_logger().error(response.message, throttle_duration_sec=5.0)
+            response.success, response.message = handler()
             return response
 
         return on_request
