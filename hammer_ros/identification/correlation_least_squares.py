@@ -43,6 +43,7 @@ from .regression import fit_regression, largest_lag, least_squares_qr, markov_la
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap
+from .uncertainty import Uncertainty, cls_uncertainty
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -317,7 +318,8 @@ def bai_two_stage_nls(
 # --- the registry's entry points (hammer_ros.identification.methods) ----------------------------------------
 
 
-def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict) -> IdentificationResult:
+def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict,
+            uncertainty: Uncertainty | None = None) -> IdentificationResult:
     """The result of an estimate; picklable (its simulator a bound method or a partial, not a closure),
     so that a ``SolverProcess`` can be handed a CLS estimate made elsewhere."""
     linear, nonlinearity = estimate.linear, estimate.nonlinearity
@@ -332,6 +334,7 @@ def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict)
         nonlinearity=nonlinearity,
         markov=linear.markov,
         extra=extra,
+        uncertainty=uncertainty,
     )
 
 
@@ -354,7 +357,9 @@ def cls_from_correlations(
     estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
                                                options.partition)
     extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
-    return _result(f"cls-{structure}", estimate, options.order, extra)
+    uncertainty = cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
+                                  None if options.partition is None else np.asarray(options.partition, dtype=float))
+    return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
 
 
 def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
