@@ -138,18 +138,22 @@ def square_root(covariance: np.ndarray) -> np.ndarray:
     return q[:, keep] * np.sqrt(w[keep])
 
 
-def _matched(roots: np.ndarray, nominal: np.ndarray) -> np.ndarray:
-    """``roots`` reordered to the nearest of ``nominal`` (NaN when fewer)."""
-    roots, nominal = np.asarray(roots, dtype=complex), np.asarray(nominal, dtype=complex)
-    if roots.size != nominal.size:
-        return np.full(nominal.size, np.nan + 0j)
-    if roots.size <= 1:
-        return roots
-    from scipy.optimize import linear_sum_assignment
+def _matched(batch: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """Each row of ``batch`` (perturbed roots, r x k) reordered to the nearest of ``nominal`` (k): the
+    nearest root per nominal one where that is one-to-one, the closest assignment otherwise (NaN rows
+    where a row has another number of roots)."""
+    batch, nominal = np.atleast_2d(np.asarray(batch, dtype=complex)), np.asarray(nominal, dtype=complex)
+    if batch.shape[1] != nominal.size:
+        return np.full((batch.shape[0], nominal.size), np.nan + 0j)
+    if nominal.size == 0:
+        return batch
+    nearest = np.abs(batch[:, None, :] - nominal[None, :, None]).argmin(axis=2)  # r x k
+    out = np.take_along_axis(batch, nearest, axis=1)
+    for row in np.flatnonzero((np.sort(nearest, axis=1) != np.arange(nominal.size)).any(axis=1)):
+        from scipy.optimize import linear_sum_assignment
 
-    rows, cols = linear_sum_assignment(np.abs(nominal[:, None] - roots[None, :]))
-    out = np.empty(nominal.size, dtype=complex)
-    out[rows] = roots[cols]
+        rows, cols = linear_sum_assignment(np.abs(nominal[:, None] - batch[row][None, :]))
+        out[row, rows] = batch[row, cols]
     return out
 
 
@@ -169,7 +173,7 @@ def propagate(figures: Callable[[np.ndarray], Figures], theta: np.ndarray,
     do = np.zeros((root.shape[1], np.size(others)))
     for i, direction in enumerate(root.T):
         p, z, o = figures(theta + STEP * direction)
-        dp[i], dz[i], do[i] = _matched(p, poles) - poles, _matched(z, zeros) - zeros, np.asarray(o) - others
+        dp[i], dz[i], do[i] = _matched(p, poles)[0] - poles, _matched(z, zeros)[0] - zeros, np.asarray(o) - others
     dp, dz, do = dp / STEP, dz / STEP, do / STEP
     return _root_std(dp), _root_std(dz), do.T @ do
 
@@ -269,9 +273,11 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     residual = target - regressors @ gamma
     normal_inverse = np.linalg.inv(regressors.T @ regressors)
     mapped = basis @ gamma
-    d = np.column_stack([y[first - lag : first - lag + rows] for lag in output_lags.tolist()]
-                        + [-mapped[first - lag : first - lag + rows] for lag in input_lags.tolist()])
-    sensitivity = normal_inverse @ (regressors.T @ d)  # dgamma / d(step-1 coefficients)
+    lags = [first - output_lags, first - input_lags]  # R^T D by correlations: column c, shift first - lag
+    products = np.array([np.concatenate([np.correlate(y, column, "valid")[lags[0]],
+                                         -np.correlate(mapped, column, "valid")[lags[1]]])
+                         for column in regressors.T])
+    sensitivity = normal_inverse @ products  # dgamma / d(step-1 coefficients), D as in the docstring
     edges = np.concatenate([[0], starts[1:] - first])
     g2 = np.add.reduceat(regressors * residual[:, None], edges, axis=0) @ normal_inverse.T
     joint = np.column_stack([g1[:, n], g2 + g1[:, :-1] @ sensitivity.T])  # (h_d, gamma) per block
@@ -331,7 +337,7 @@ def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndar
         zeros = np.zeros((directions.shape[0], 0), dtype=complex)
     from .linear import _sorted_roots
 
-    return tuple(_root_std(np.array([_matched(x, nominal) - nominal for x in batch[1:]]) / STEP)
+    return tuple(_root_std((_matched(batch[1:], nominal) - nominal) / STEP)
                  for batch, nominal in ((poles, _sorted_roots(poles[0].tolist())),
                                         (zeros, _sorted_roots(zeros[0].tolist()))))
 
@@ -354,8 +360,10 @@ def _normalised_map(v: np.ndarray, basis: np.ndarray, partition: np.ndarray | No
     if partition is None:
         mean = float(v.mean())
 
-        def unit_gain(gamma: np.ndarray) -> float:
-            return float(np.polynomial.polynomial.polyval(mean, np.polynomial.polynomial.polyder(gamma)))
+        powers = np.arange(basis.shape[1]) * mean ** np.maximum(np.arange(basis.shape[1]) - 1, 0)
+
+        def unit_gain(gamma: np.ndarray) -> float:  # F'(mean) = sum_l l gamma_l mean^(l-1)
+            return float(powers @ gamma)
 
         pack = _map_parameters(PolynomialMap(np.zeros(basis.shape[1]))).pack
         return (lambda gamma: pack(PolynomialMap(gamma))), unit_gain

@@ -1,0 +1,90 @@
+"""Confidence bounds (poles_std, zeros_std, gain_std, nonlinearity.points_std) against Monte Carlo ground truth."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hammer_ros.cli import main
+from hammer_ros.identification.methods import IdentifyOptions, identify
+from hammer_ros.tools.uncertainty_check import SYSTEMS, Z95, _matched, monte_carlo, record
+
+RUNS = 30  # per system; ~0.1 s per realisation for both methods
+
+
+@pytest.mark.parametrize("method", ["cls-markov", "plls-hammerstein"])
+def test_pole_intervals_cover_the_truth_at_their_nominal_rate(method):
+    """The issue's check (three systems, 30 dB, N = 6000, 30 realisations): 95 % intervals cover the true
+    poles' parts in 88-99 % of cases pooled (binomial sd ~2 % over ~330 intervals), no system below 85 %,
+    and the median reported sd is 0.5-2 x the Monte Carlo spread (measured 0.82-1.16)."""
+    rows = [monte_carlo(system, method, RUNS) for system in SYSTEMS]
+    pooled = sum(r["coverage"] * r["intervals"] for r in rows) / sum(r["intervals"] for r in rows)
+    assert 0.88 <= pooled <= 0.99, rows
+    assert all(r["coverage"] >= 0.85 for r in rows), rows
+    assert all(0.5 <= ratio <= 2.0 for r in rows for ratio in r["sd_ratio"]), rows
+
+
+def _coverage(errors: list, sds: list) -> float:
+    errors, sds = np.abs(np.concatenate(errors)), np.concatenate(sds)
+    return float(np.mean(errors <= Z95 * sds))
+
+
+def test_cls_zeros_gain_and_map_points_are_calibrated():
+    """G1 with F = v + 4 v^3 (in CLS's cubic class): the zeros' real parts and the gain figure
+    h_1 F'(mean v) are covered at about their nominal rate; the sd of the unit-slope map
+    F(u) / F'(mean v) on |u| <= 0.3 (2 input sds) is 0.7-1.5 x its Monte Carlo spread (measured
+    0.95-1.2). Its coverage is not checked: CLS mu-Markov's step 2 has an errors-in-variables bias of
+    order 1/N from the 30 noisy Markov taps it filters with (docs/methods.md, about 1.5 sd at u = 0.3)."""
+    system = SYSTEMS[0]
+    grid = np.linspace(-0.3, 0.3, 7)
+    zeros, gains, points, points_std = ([], []), ([], []), [], []
+    for run in range(RUNS):
+        v, y = record(system, 100 + run)
+        result = identify("cls-markov", v, y, IdentifyOptions(order=3, delay=1))
+        doc = result.to_json(v, y)
+        z, sd = _matched(system.linear.zeros, doc["zeros"], doc["zeros_std"])
+        zeros[0].append(z.real - system.linear.zeros.real)
+        zeros[1].append(sd[:, 0])
+        slope = 1.0 + 12.0 * v.mean() ** 2  # F'(mean v)
+        gains[0].append([doc["gain"] - system.linear.markov_parameters(2)[1] * slope])
+        gains[1].append([doc["gain_std"]])
+        points.append(result.nonlinearity(grid) - system.nonlinearity(grid) / slope)
+        points_std.append(result.uncertainty.points_std(result.nonlinearity, grid))
+    for name, (errors, sds) in (("zeros", zeros), ("gain", gains)):
+        assert 0.85 <= _coverage(errors, sds) <= 0.99, name
+    ratio = np.median(points_std, axis=0) / np.std(points, axis=0, ddof=1)
+    assert np.all((0.7 <= ratio) & (ratio <= 1.5)), ratio
+
+
+def test_plls_map_points_are_calibrated_on_a_map_in_its_class():
+    """The dead zone of the third system on the partition (-0.05, 0.05), where PLLS's map class holds it:
+    the knots' values and the map at the data's ends are covered at about the nominal rate."""
+    system = SYSTEMS[2]
+    errors, sds = [], []
+    for run in range(RUNS):
+        v, y = record(system, 200 + run)
+        doc = identify("plls-hammerstein", v, y, IdentifyOptions(order=2, delay=1, partition=(-0.05, 0.05))).to_json(v)
+        u, f = np.asarray(doc["nonlinearity"]["points"]).T
+        errors.append(f - system.nonlinearity(u))
+        sds.append(np.asarray(doc["nonlinearity"]["points_std"]))
+    assert 0.88 <= _coverage(errors, sds) <= 0.99
+
+
+@pytest.mark.parametrize("method", ["cls-arx", "cls-markov", "plls-hammerstein"])
+def test_every_model_json_carries_aligned_bounds(method, tmp_path, capsys):
+    """identify --json: poles_std / zeros_std aligned with poles / zeros, a real pole's sd_im 0, points_std
+    one per point, gain_std beside gain; all finite and positive."""
+    v, y = record(SYSTEMS[2], 7)
+    path = tmp_path / "record.npz"
+    np.savez(path, u=v, y=y)
+    assert main(["identify", str(path), "--method", method, "--order", "2", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    for roots in ("poles", "zeros"):
+        sd = np.asarray(doc[f"{roots}_std"])
+        assert sd.shape == (len(doc[roots]), 2) and np.all(np.isfinite(sd)) and np.all(sd[:, 0] > 0)
+        assert np.all(sd[np.asarray(doc[roots])[:, 1] == 0, 1] == 0.0)
+    points_std = doc["nonlinearity"]["points_std"]
+    assert len(points_std) == len(doc["nonlinearity"]["points"]) and min(points_std) >= 0.0
+    assert ("gain_std" in doc) == ("gain" in doc)
