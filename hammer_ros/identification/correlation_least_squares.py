@@ -28,6 +28,7 @@ Defaults (documented choices, the paper leaves them open):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
@@ -43,7 +44,7 @@ from .regression import fit_regression, largest_lag, least_squares_qr, markov_la
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap
-from .uncertainty import Uncertainty, cls_uncertainty
+from .uncertainty import Uncertainty, cls_uncertainty, propagate, regression_covariance
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -305,6 +306,11 @@ def bai_two_stage_nls(
     """
     v, y = _check_record(v, y)
     _, a, lumped = _least_squares_fit(y, polynomial_basis(v, poly), order, delay, mu)
+    return _nls_stage_two(a, lumped, order, delay, mu)
+
+
+def _nls_stage_two(a: np.ndarray, lumped: np.ndarray, order: int, delay: int, mu: int) -> HammersteinEstimate:
+    """Stage 2 of ``bai_two_stage_nls``: the rank-one factors b_hat, gamma_hat of Theta_bgamma (eq. 12)."""
     u, s, vt = np.linalg.svd(lumped, full_matrices=False)
     v11 = vt[0, 0]
     if s[0] == 0.0 or abs(v11) < 1e-12:
@@ -366,11 +372,39 @@ def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
     """``nls-arx`` / ``nls-markov``: ``bai_two_stage_nls`` with monomials up to ``poly``."""
     mu = _mu(structure, options.mu)
     estimate = bai_two_stage_nls(v, y, options.order, options.delay, mu, options.poly)
-    return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})
+    uncertainty = _regression_uncertainty(y, polynomial_basis(v, options.poly), options.order, options.delay, mu,
+                                          partial(_nls_stage_two, order=options.order, delay=options.delay, mu=mu))
+    return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
 
 
 def identify_ls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
     """``ls-arx`` / ``ls-markov``: ``standard_least_squares`` (no nonlinearity)."""
     mu = _mu(structure, options.mu)
     estimate = HammersteinEstimate(standard_least_squares(v, y, options.order, options.delay, mu), None)
-    return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})
+
+    def recover(a: np.ndarray, coefficients: np.ndarray) -> HammersteinEstimate:
+        return HammersteinEstimate(linear_estimate(a, coefficients[:, 0], options.order, options.delay, mu), None)
+
+    uncertainty = _regression_uncertainty(y, v, options.order, options.delay, mu, recover)
+    return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
+
+
+def _regression_uncertainty(y: np.ndarray, x: np.ndarray, order: int, delay: int, mu: int,
+                            recover: Callable[[np.ndarray, np.ndarray], HammersteinEstimate]) -> Uncertainty:
+    """The bounds of a raw-data regression estimate (LS, NLS): the batch-means sandwich of the
+    least-squares fit of y on x (``uncertainty.regression_covariance``), propagated through
+    ``recover`` (a, input coefficients) -> estimate to its poles, zeros, gain and map
+    coefficients. The intervals hold the estimator's spread, not its bias: LS ignores F, and both
+    fit an equation error that output noise makes coloured and correlated with the y-lags."""
+    reg, theta = fit_regression(y, x, order, delay, mu)
+    covariance = regression_covariance(reg.phi, reg.target - reg.phi @ theta)
+    has_map = recover(*reg.split(theta)).nonlinearity is not None
+
+    def figures(t: np.ndarray):
+        estimate = recover(*reg.split(t))
+        others = [[estimate.linear.first_markov]] + ([estimate.nonlinearity.coefficients] if has_map else [])
+        return estimate.linear.linear.poles, estimate.linear.linear.zeros, np.concatenate(others)
+
+    poles_std, zeros_std, others = propagate(figures, theta, covariance)
+    return Uncertainty(poles_std, zeros_std, float(np.sqrt(others[0, 0])), others[1:, 1:] if has_map else None,
+                       "least squares: batch means of the influences, first-order propagation")
