@@ -88,3 +88,20 @@ def test_every_model_json_carries_aligned_bounds(method, tmp_path, capsys):
     points_std = doc["nonlinearity"]["points_std"]
     assert len(points_std) == len(doc["nonlinearity"]["points"]) and min(points_std) >= 0.0
     assert ("gain_std" in doc) == ("gain" in doc)
+
+
+def test_refined_estimates_carry_the_output_error_covariance():
+    """identify --refine: the sandwich of the simulation-error fit covers the true poles (resonant pair,
+    tanh map, 20 realisations: measured 0.975, sd / spread 0.99-1.2)."""
+    from hammer_ros.identification.refinement import refine_result
+
+    system = SYSTEMS[1]
+    errors, sds = [], []
+    for run in range(20):
+        v, y = record(system, 300 + run)
+        result = refine_result(identify("cls-markov", v, y, IdentifyOptions(order=2, delay=1)), v, y)
+        doc = result.to_json()
+        p, sd = _matched(system.linear.poles, doc["poles"], doc["poles_std"])
+        errors.append(np.concatenate([p.real - system.linear.poles.real, p.imag - system.linear.poles.imag]))
+        sds.append(np.concatenate([sd[:, 0], sd[:, 1]]))
+    assert 0.88 <= _coverage(errors, sds) <= 0.995

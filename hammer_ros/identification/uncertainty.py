@@ -376,3 +376,48 @@ def _normalised_map(v: np.ndarray, basis: np.ndarray, partition: np.ndarray | No
     pack = _map_parameters(template).pack
     return (lambda t: pack(point_slope_map(partition, primary, t[1:], float(t[0])))), \
         (lambda t: float(covariance @ t[1:]))
+
+
+# --- subseries (methods without a tractable covariance) ---------------------------------------
+
+SEGMENTS = 8  # subseries: contiguous segments of the record, each estimated alone
+
+
+def subseries_uncertainty(estimate: Callable, v: np.ndarray, y: np.ndarray, result, with_map: bool = True,
+                          segments: int = SEGMENTS) -> Uncertainty | None:
+    """The bounds of an estimator with no tractable covariance, by subseries (Carlstein, Ann. Stat. 14,
+    1986; Politis, Romano & Wolf, *Subsampling* 1999): ``estimate`` (v, y) -> result on each of
+    ``segments`` contiguous segments of length L; for a sqrt(N)-consistent estimator
+    Cov(full) = Cov(segments) L / N. Roots are matched to ``result``'s. Short segments make it
+    conservative (their own bias and transients add to the spread). None when fewer than half the
+    segments give an estimate with the same number of poles and zeros."""
+    length = v.size // segments
+    poles, zeros, others = [], [], []
+    from .refinement import _map_parameters
+
+    pack = _map_parameters(result.nonlinearity).pack if with_map and result.nonlinearity is not None else None
+    for k in range(segments):
+        part = slice(k * length, (k + 1) * length)
+        try:
+            with np.errstate(all="ignore"):
+                found = estimate(v[part], y[part])
+            extra = [[found.gain]] if result.gain is not None else []
+            if pack is not None:
+                extra.append(pack(found.nonlinearity))
+            figures = np.concatenate(extra) if extra else np.zeros(0)
+        except Exception:  # a segment the method rejects (too short, not exciting) is left out
+            continue
+        if found.poles.size == result.poles.size and found.zeros.size == result.zeros.size:
+            poles.append(found.poles)
+            zeros.append(found.zeros)
+            others.append(figures)
+    if len(poles) < segments / 2 or len({np.size(o) for o in others}) > 1:
+        return None
+    scale = length / v.size
+    poles_std = _root_std((_matched(np.array(poles), result.poles) - result.poles) * np.sqrt(scale / (len(poles) - 1)))
+    zeros_std = _root_std((_matched(np.array(zeros), result.zeros) - result.zeros) * np.sqrt(scale / (len(poles) - 1)))
+    covariance = np.atleast_2d(np.cov(np.array(others).T)) * scale if np.size(others[0]) else np.zeros((0, 0))
+    gain_std = float(np.sqrt(covariance[0, 0])) if result.gain is not None else None
+    map_covariance = covariance[1:, 1:] if result.gain is not None else covariance
+    return Uncertainty(poles_std, zeros_std, gain_std, map_covariance if pack is not None else None,
+                       f"subseries over {len(poles)} segments of the record")
