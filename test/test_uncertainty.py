@@ -105,3 +105,33 @@ def test_refined_estimates_carry_the_output_error_covariance():
         errors.append(np.concatenate([p.real - system.linear.poles.real, p.imag - system.linear.poles.imag]))
         sds.append(np.concatenate([sd[:, 0], sd[:, 1]]))
     assert 0.88 <= _coverage(errors, sds) <= 0.995
+
+
+def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
+    """The streaming engine: a window whose output is mostly noise (SNR -10 dB) gives a model whose
+    pole intervals are wide; it is counted ``uncertain`` and the published model stays, which
+    /diagnostics reports as a warning with the last model republished as stale."""
+    from hammer_ros.ros.outputs import DIAGNOSTIC_WARN, diagnostics_message
+    from hammer_ros.streaming.config import EngineConfig
+    from hammer_ros.streaming.engine import StreamingEngine
+
+    system = SYSTEMS[2]
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=1500, tau_max=30, method="cls-arx", order=2,
+                                          min_excitation=0.0))
+    v, y = record(system, 400)
+    v, y, t = v[:3000], y[:3000], np.arange(3000) / 100.0
+    engine.add_excitation(t[:1500], v[:1500])
+    engine.add_response(t[:1500], y[:1500])
+    confident = engine.solve()
+    assert confident.ok and engine.stats.uncertain == 0
+    noisy = y[1500:] + 3.0 * np.std(y) * np.random.default_rng(1).standard_normal(1500)
+    engine.add_excitation(t[1500:], v[1500:])
+    engine.add_response(t[1500:], noisy)
+    outcome = engine.solve()
+    assert not outcome.ok and outcome.status == "uncertain" and "pole" in outcome.reason, outcome.reason
+    assert engine.stats.uncertain == 1 and engine.snapshot().published is confident.result
+    status = diagnostics_message(engine.stats, outcome, 0.0)["status"][0]
+    assert status["level"] == DIAGNOSTIC_WARN and status["message"].endswith("publishing the last good model as stale")
+    assert {"key": "uncertain", "value": "1"} in status["values"]
+    engine.reconfigure(max_relative_sd=0.0)  # off: the same window's model is published
+    assert engine.solve().ok
