@@ -135,3 +135,34 @@ def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
     assert {"key": "uncertain", "value": "1"} in status["values"]
     engine.reconfigure(max_relative_sd=0.0)  # off: the same window's model is published
     assert engine.solve().ok
+
+
+def test_a_fleet_change_inside_the_models_combined_intervals_is_not_reported():
+    """The change test: a 10 % step in a time constant is a change when the models' sds are 1 % (the step
+    is 7 combined sds) and is not when they are 5 % (1.4 combined sds: inside the intervals)."""
+    from hammer_ros.fleet.changes import group_changes
+
+    times = np.arange(12) * 86400.0
+    values = np.r_[np.full(6, 1.0), np.full(6, 1.1)] * (1 + 0.003 * np.sin(np.arange(12)))
+    for sd, reported in ((0.01, True), (0.05, False)):
+        _, changes = group_changes("joint", times, {"time_constant": values}, sds={"time_constant": np.full(12, sd)})
+        assert bool(changes) is reported, sd
+
+
+def test_fleet_parquet_holds_the_bounds(tmp_path):
+    """fleet.parquet: poles_std / zeros_std columns aligned with the poles, gain_std and the time constant's
+    sd from the slowest pole (sd(|p|) / (|p| ln^2 |p|) / sample rate)."""
+    import pyarrow.parquet as pq
+
+    from hammer_ros.fleet.table import write_parquet
+
+    v, y = record(SYSTEMS[2], 9)
+    doc = identify("cls-markov", v, y, IdentifyOptions(order=2, delay=1)).to_json(v, y)
+    row = {"path": "a.mcap", "group": "joint", "labels": {}, "start": 0.0, "end": 60.0, "model": doc}
+    write_parquet([row], tmp_path / "fleet.parquet", sample_rate=100.0)
+    flat = pq.read_table(tmp_path / "fleet.parquet").to_pylist()[0]
+    assert flat["poles_std_re"] == [s[0] for s in doc["poles_std"]] and len(flat["zeros_std_im"]) == len(doc["zeros"])
+    assert flat["gain_std"] == doc["gain_std"]
+    slowest = int(np.argmax([abs(complex(*p)) for p in doc["poles"]]))
+    radius, sd = abs(complex(*doc["poles"][slowest])), doc["poles_std"][slowest][0]  # a real pole
+    assert flat["time_constant_std"] == pytest.approx(sd / (radius * np.log(radius) ** 2) / 100.0)
