@@ -72,14 +72,15 @@ def test_plls_map_points_are_calibrated_on_a_map_in_its_class():
     assert 0.88 <= _coverage(errors, sds) <= 0.99
 
 
-@pytest.mark.parametrize("method", ["cls-arx", "cls-markov", "plls-hammerstein"])
-def test_every_model_json_carries_aligned_bounds(method, tmp_path, capsys):
+@pytest.mark.parametrize("method, extra", [("cls-arx", []), ("cls-markov", []), ("cls-markov", ["--partition", "-0.05,0.05"]),
+                                           ("plls-hammerstein", []), ("nls-markov", []), ("bf-hammerstein", [])])
+def test_every_model_json_carries_aligned_bounds(method, extra, tmp_path, capsys):
     """identify --json: poles_std / zeros_std aligned with poles / zeros, a real pole's sd_im 0, points_std
     one per point, gain_std beside gain; all finite and positive."""
     v, y = record(SYSTEMS[2], 7)
     path = tmp_path / "record.npz"
     np.savez(path, u=v, y=y)
-    assert main(["identify", str(path), "--method", method, "--order", "2", "--json"]) == 0
+    assert main(["identify", str(path), "--method", method, "--order", "2", *extra, "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     for roots in ("poles", "zeros"):
         sd = np.asarray(doc[f"{roots}_std"])

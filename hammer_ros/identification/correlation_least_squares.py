@@ -43,7 +43,7 @@ from .piecewise_linear_ls import check_partition, default_primary_index, point_s
 from .regression import Regression, fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
-from .static_maps import PiecewiseLinearMap, PolynomialMap
+from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
 from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, propagate, regression_covariance
 
 DEFAULT_MU = 30
@@ -366,9 +366,35 @@ def cls_from_correlations(
     estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
                                                options.partition)
     extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
-    uncertainty = cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
-                                  None if options.partition is None else np.asarray(options.partition, dtype=float))
+    partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
+    uncertainty = cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition))
     return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
+
+
+def _step_two_map(v: np.ndarray, poly: int, partition: np.ndarray | None):
+    """For ``cls_uncertainty``: step 2's basis of v (the constant first) and gamma -> (s, the packed
+    parameters of the unit map gamma / s), s = F'(mean v) for the polynomial (``correlation_least_squares_steps``),
+    the Bussgang gain cov(F(v), v) / var(v) for a piecewise-linear F (``piecewise_linear_step``)."""
+    if partition is None:
+        powers = np.arange(poly + 1) * v.mean() ** np.maximum(np.arange(poly + 1) - 1, 0)
+
+        def polynomial(gamma: np.ndarray) -> tuple[float, np.ndarray]:  # F'(mean) = sum_l l gamma_l mean^(l-1)
+            scale = float(powers @ gamma)
+            return scale, gamma / scale
+
+        return polynomial_basis(v, poly, constant=True), polynomial
+    primary = default_primary_index(partition)
+    eta = point_slope_basis(v, partition, primary)
+    centred = v - v.mean()
+    bussgang = eta.T @ centred / (centred @ centred)  # cov(eta(v), v) / var(v), per slope
+
+    def piecewise(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        scale = float(bussgang @ theta[1:])
+        fmap = point_slope_map(partition, primary, theta[1:] / scale, float(theta[0] / scale))
+        return scale, map_parameters(fmap).pack(fmap)
+
+    return np.column_stack([np.ones(v.size), eta]), piecewise
 
 
 def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:

@@ -47,7 +47,7 @@ from .methods import IdentifyOptions
 from .regression import Regression, build_regression, lagged_columns, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
-from .static_maps import PiecewiseLinearMap
+from .static_maps import PiecewiseLinearMap, map_parameters
 from .uncertainty import Uncertainty, propagate, regression_covariance
 
 STRUCTURES = ("hammerstein", "feedback", "hammerstein_feedback")
@@ -394,10 +394,8 @@ def plls_uncertainty(blocks, theta: np.ndarray, covariance: np.ndarray, instrume
     """The sds of a PLLS estimate: Cov(theta~) by batch means (``uncertainty``), propagated through
     the block recovery (rank-1 factors, Proposition 1) to the poles, zeros and the input map's
     knot values and outer slopes."""
-    from .refinement import _map_parameters
-
     nominal = blocks(theta).nonlinearity
-    pack = None if nominal is None else _map_parameters(nominal).pack
+    pack = None if nominal is None else map_parameters(nominal).pack
 
     def figures(t: np.ndarray):
         est = blocks(t)

@@ -34,35 +34,11 @@ from .linear import LinearModel
 from .result import IdentificationResult
 from .simulate import simulate_feedback, simulate_hammerstein_feedback
 from .simulation_error import refine, settling_samples, stabilised_denominator
-from .static_maps import NonparametricMap, PiecewiseLinearMap, PolynomialMap
+from .static_maps import MapParameters, PiecewiseLinearMap, PolynomialMap, map_parameters
 from .uncertainty import Uncertainty, propagate, regression_covariance
 
 MAX_ITERATIONS = 50  # LM iterations (each costs a simulation per parameter for the Jacobian)
 POLYNOMIAL_KNOTS = 11  # quantiles of the input at which a polynomial F becomes piecewise linear
-
-
-@dataclass(frozen=True)
-class _MapParameters:
-    """A static map's free parameters and how to rebuild the map from them."""
-
-    size: int
-    pack: Callable[[object], np.ndarray]
-    unpack: Callable[[np.ndarray], object]
-
-
-def _map_parameters(m: object) -> _MapParameters:
-    if isinstance(m, PolynomialMap):
-        return _MapParameters(m.coefficients.size, lambda x: x.coefficients, PolynomialMap)
-    if isinstance(m, PiecewiseLinearMap):
-        n = m.values.size
-
-        def unpack(t: np.ndarray) -> PiecewiseLinearMap:
-            return replace(m, values=t[:n], slope_left=float(t[n]), slope_right=float(t[n + 1]))
-
-        return _MapParameters(n + 2, lambda x: np.concatenate([x.values, [x.slope_left, x.slope_right]]), unpack)
-    if isinstance(m, NonparametricMap):
-        return _MapParameters(m.f.size, lambda x: x.f, lambda t: NonparametricMap(m.u, t))
-    raise TypeError(f"no parameters for a {type(m).__name__}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,9 +59,9 @@ class _Structure:
             free = free[free != first + int(np.argmax(np.abs(b[first:])))]
         return free
 
-    def maps(self) -> list[tuple[str, _MapParameters]]:
+    def maps(self) -> list[tuple[str, MapParameters]]:
         r = self.result
-        return [(name, _map_parameters(m)) for name, m in (("nonlinearity", r.nonlinearity),
+        return [(name, map_parameters(m)) for name, m in (("nonlinearity", r.nonlinearity),
                                                             ("feedback_nonlinearity", r.feedback_nonlinearity))
                 if m is not None]
 

@@ -50,7 +50,7 @@ RANK_TOLERANCE = 1e-12  # eigenvalues of Cov below this x the largest are droppe
 class Uncertainty:
     """The sds of an estimate: ``poles_std`` and ``zeros_std`` ([sd_re, sd_im] per root, in the
     order of the model's poles and zeros), ``gain_std`` (of the method's gain figure) and the
-    covariance of the input map's parameters (those ``refinement._map_parameters`` packs:
+    covariance of the input map's parameters (those ``static_maps.map_parameters`` packs:
     polynomial coefficients; piecewise-linear knot values and outer slopes), with ``how`` it
     was made (docs/methods.md)."""
 
@@ -85,10 +85,10 @@ class Uncertainty:
 
 
 def map_gradient(nonlinearity, u: np.ndarray) -> np.ndarray:
-    """dF(u)/dp (len(u) x len(p)) of a map linear in its parameters p (``_map_parameters``)."""
-    from .refinement import _map_parameters
+    """dF(u)/dp (len(u) x len(p)) of a map linear in its parameters p (``static_maps.map_parameters``)."""
+    from .static_maps import map_parameters
 
-    parameters = _map_parameters(nonlinearity)
+    parameters = map_parameters(nonlinearity)
     zero = parameters.unpack(np.zeros(parameters.size))(u)
     return np.column_stack([parameters.unpack(unit)(u) - zero for unit in np.eye(parameters.size)])
 
@@ -188,7 +188,8 @@ def _root_std(derivatives: np.ndarray) -> np.ndarray:
 
 
 def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int,
-                    mu: int, poly: int, partition: np.ndarray | None = None) -> Uncertainty:
+                    mu: int, basis: np.ndarray,
+                    normalised: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> Uncertainty:
     """The bounds of a CLS estimate (both steps) by batch means of its exact first-order influences.
 
     Step 1 solves X theta = z on the correlation lags, X and z built from the estimates of
@@ -207,11 +208,13 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     derivative of the step-2 residual t - R gamma in the step-1 coefficients: y(k - l_j) for
     a_j, -F_gamma(v(k - i)) for b_i (its dependence through the residual's own correlation
     with D is second order). The gain h_d s(gamma) and the unit-slope map gamma / s(gamma)
-    (s = F'(mean v), or the Bussgang gain with ``partition``) get the joint covariance."""
+    (s = F'(mean v), or the Bussgang gain of a piecewise-linear F) get the joint covariance.
+
+    ``basis`` is step 2's basis of v (its first column the constant), ``normalised`` maps gamma to
+    (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``)."""
     from scipy.linalg import solve_triangular
 
-    from .correlation_least_squares import _fir_valid
-    from .regression import build_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
+    from .regression import build_regression, largest_lag, least_squares_qr, markov_lags
 
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     tau_max = (np.size(phi_vv) - 1) // 2
@@ -257,18 +260,12 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
         poles_std, zeros_std = era_root_std(markov, order, delay, cov1[n : n + mu, n : n + mu])
 
     # step 2 and its dependence on step 1
-    if partition is None:
-        basis = polynomial_basis(v, poly, constant=True)
-    else:
-        from .piecewise_linear_ls import default_primary_index, point_slope_basis
-
-        primary = default_primary_index(partition)
-        basis = np.column_stack([np.ones(v.size), point_slope_basis(v, partition, primary)])
     rows = v.size - first
     target = np.convolve(y, denominator)[first : y.size]
     regressors = np.empty((rows, basis.shape[1]), order="F")
     regressors[:, 0] = numerator.sum()
-    _fir_valid(basis[:, 1:], numerator, regressors[:, 1:])
+    for column in range(1, basis.shape[1]):  # the basis filtered by B_hat (rows from the largest lag on)
+        regressors[:, column] = np.convolve(basis[:, column], numerator, "valid")
     gamma = least_squares_qr(regressors, target)
     residual = target - regressors @ gamma
     normal_inverse = np.linalg.inv(regressors.T @ regressors)
@@ -281,11 +278,10 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     edges = np.concatenate([[0], starts[1:] - first])
     g2 = np.add.reduceat(regressors * residual[:, None], edges, axis=0) @ normal_inverse.T
     joint = np.column_stack([g1[:, n], g2 + g1[:, :-1] @ sensitivity.T])  # (h_d, gamma) per block
-    parameters, unit_gain = _normalised_map(v, basis, partition)
 
     def gain_and_map(t: np.ndarray) -> Figures:
-        scale = unit_gain(t[1:])
-        return np.zeros(0), np.zeros(0), np.concatenate([[t[0] * scale], parameters(t[1:] / scale)])
+        scale, parameters = normalised(t[1:])
+        return np.zeros(0), np.zeros(0), np.concatenate([[t[0] * scale], parameters])
 
     _, _, cov = propagate(gain_and_map, np.concatenate([[coefficients[0]], gamma]), batch_means_covariance(joint))
     how = f"cls: batch means over {blocks} blocks of both steps' influences, first-order propagation"
@@ -351,33 +347,6 @@ def _monic(roots: np.ndarray) -> np.ndarray:
     return coefficients.real
 
 
-def _normalised_map(v: np.ndarray, basis: np.ndarray, partition: np.ndarray | None):
-    """(the map's packed parameters of gamma / s, s(gamma)) for CLS step 2: s = F'(mean v) for the
-    polynomial, the Bussgang gain cov(F(v), v) / var(v) for the piecewise-linear basis."""
-    from .refinement import _map_parameters
-    from .static_maps import PolynomialMap
-
-    if partition is None:
-        mean = float(v.mean())
-
-        powers = np.arange(basis.shape[1]) * mean ** np.maximum(np.arange(basis.shape[1]) - 1, 0)
-
-        def unit_gain(gamma: np.ndarray) -> float:  # F'(mean) = sum_l l gamma_l mean^(l-1)
-            return float(powers @ gamma)
-
-        pack = _map_parameters(PolynomialMap(np.zeros(basis.shape[1]))).pack
-        return (lambda gamma: pack(PolynomialMap(gamma))), unit_gain
-    from .piecewise_linear_ls import default_primary_index, point_slope_map
-
-    centred = v - v.mean()
-    covariance = basis[:, 1:].T @ centred / (centred @ centred)  # cov(eta(v), v) / var(v), per slope
-    primary = default_primary_index(partition)
-    template = point_slope_map(partition, primary, np.ones(basis.shape[1] - 1), 0.0)
-    pack = _map_parameters(template).pack
-    return (lambda t: pack(point_slope_map(partition, primary, t[1:], float(t[0])))), \
-        (lambda t: float(covariance @ t[1:]))
-
-
 # --- subseries (methods without a tractable covariance) ---------------------------------------
 
 SEGMENTS = 8  # subseries: contiguous segments of the record, each estimated alone
@@ -393,9 +362,9 @@ def subseries_uncertainty(estimate: Callable, v: np.ndarray, y: np.ndarray, resu
     segments give an estimate with the same number of poles and zeros."""
     length = v.size // segments
     poles, zeros, others = [], [], []
-    from .refinement import _map_parameters
+    from .static_maps import map_parameters
 
-    pack = _map_parameters(result.nonlinearity).pack if with_map and result.nonlinearity is not None else None
+    pack = map_parameters(result.nonlinearity).pack if with_map and result.nonlinearity is not None else None
     for k in range(segments):
         part = slice(k * length, (k + 1) * length)
         try:
