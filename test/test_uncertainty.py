@@ -72,8 +72,9 @@ def test_plls_map_points_are_calibrated_on_a_map_in_its_class():
     assert 0.88 <= _coverage(errors, sds) <= 0.99
 
 
-@pytest.mark.parametrize("method, extra", [("cls-arx", []), ("cls-markov", []), ("cls-markov", ["--partition", "-0.05,0.05"]),
-                                           ("plls-hammerstein", []), ("nls-markov", []), ("bf-hammerstein", [])])
+@pytest.mark.parametrize("method, extra", [("cls-arx", []), ("cls-markov", []),
+                                           ("cls-markov", ["--partition", "-0.05,0.05"]), ("plls-hammerstein", []),
+                                           ("nls-markov", []), ("bf-hammerstein", [])])
 def test_every_model_json_carries_aligned_bounds(method, extra, tmp_path, capsys):
     """identify --json: poles_std / zeros_std aligned with poles / zeros, a real pole's sd_im 0, points_std
     one per point, gain_std beside gain; all finite and positive."""
@@ -136,6 +137,31 @@ def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
     assert {"key": "uncertain", "value": "1"} in status["values"]
     engine.reconfigure(max_relative_sd=0.0)  # off: the same window's model is published
     assert engine.solve().ok
+
+
+def test_the_dashboard_draws_the_intervals():
+    """The Foxglove channels of a solve: each pole's 95 % intervals of re, im and |p| around it, and the
+    map's band F -+ 1.96 sd at every point drawn."""
+    from hammer_ros.ros.dashboard import dashboard_messages
+    from hammer_ros.ros.outputs import result_messages
+    from hammer_ros.streaming.config import EngineConfig
+    from hammer_ros.streaming.engine import StreamingEngine
+
+    engine = StreamingEngine(EngineConfig(sample_rate=100.0, window=4000, tau_max=30, method="cls-arx", order=2))
+    v, y = record(SYSTEMS[2], 500)
+    t = np.arange(v.size) / 100.0
+    engine.add_excitation(t, v)
+    engine.add_response(t, y)
+    outcome = engine.solve()
+    channels = dict(dashboard_messages(result_messages(outcome, 1.0), 1.0))
+    poles, fmap = channels["poles"], channels["nonlinearity"]
+    for part in ("real", "magnitude"):
+        value = np.array(poles[part])
+        assert np.all(np.array(poles[f"{part}_lower"]) < value) and np.all(np.array(poles[f"{part}_upper"]) > value)
+    sd = np.asarray(outcome.doc["poles_std"])[:, 0]
+    assert np.allclose(np.array(poles["real_upper"]) - poles["real"], 1.96 * sd)
+    assert len(fmap["y_lower"]) == len(fmap["y"]) and np.all(np.array(fmap["y_lower"]) <= fmap["y"])
+    assert np.all(np.array(fmap["y_upper"]) > np.array(fmap["y_lower"]))
 
 
 def test_a_fleet_change_inside_the_models_combined_intervals_is_not_reported():
