@@ -229,7 +229,8 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     first = largest_lag(order, mu)
     denominator, numerator = np.zeros(first + 1), np.zeros(first + 1)
     denominator[0], denominator[output_lags], numerator[input_lags] = 1.0, a, coefficients
-    w = np.convolve(y, denominator)[: y.size] - np.convolve(v, numerator)[: v.size]
+    filtered_y = np.convolve(y, denominator)[: y.size]  # A_hat y: step 2's target from the largest lag on
+    w = filtered_y - np.convolve(v, numerator)[: v.size]
     w -= w[first:].mean()
 
     centres = v.size - 2 * tau_max
@@ -261,7 +262,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
 
     # step 2 and its dependence on step 1
     rows = v.size - first
-    target = np.convolve(y, denominator)[first : y.size]
+    target = filtered_y[first:]
     regressors = np.empty((rows, basis.shape[1]), order="F")
     regressors[:, 0] = numerator.sum()
     for column in range(1, basis.shape[1]):  # the basis filtered by B_hat (rows from the largest lag on)

@@ -107,7 +107,7 @@ def solve_cost(window: int = 4000, repeats: int = 200) -> dict:
         cls.cls_uncertainty = with_bounds
     out = {label: {"p50_ms": float(np.percentile(t, 50)), "p99_ms": float(np.percentile(t, 99))}
            for label, t in times.items()}
-    arguments = (snap.phi_vv, snap.phi_yv, snap.v, snap.y, 3, 1, 30, 3)
+    arguments = (snap.phi_vv, snap.phi_yv, snap.v, snap.y, 3, 1, 30, *cls._step_two_map(snap.v, 3, None))
     out["bounds_alone_ms"] = 1e3 * min(timeit.repeat(lambda: with_bounds(*arguments), number=20, repeat=5)) / 20
     process = loaded_solve_latencies(case, window, repeats, in_process=True)  # the bench's goal row, with the bounds
     out["solver_process_loaded"] = {"p50_ms": process["solve_p50"], "p99_ms": process["solve_p99"]}
