@@ -297,10 +297,10 @@ def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndar
 
         dA = O^+ dH(1) C^+ - O^+ dH(0) C^+ A,   dB = O^+ dH(0) (I - V V^T) e_1,   dC = e_1^T dH(0) C^+.
 
-    The realisations A + eps dA, ... along the columns of a square root of Cov are then solved
-    for their poles and zeros in one batched eigenvalue call each (zeros: the roots of
-    det(zI - A + BC) - det(zI - A), its first ``delay`` coefficients zero, as
-    ``StateSpaceRealization.to_linear_model``)."""
+    The realisations A + eps dA, ... along the columns of a square root of Cov give their
+    characteristic polynomials P (and numerators N = det(zI - A + BC) - det(zI - A) + D P, the first
+    ``delay`` coefficients zero, as ``StateSpaceRealization.to_linear_model``) in a batch, and each
+    root z of the estimate moves by dz = -dP(z) / P'(z) (no eigenvalue problem per direction)."""
     from .era import _hankel_indices, _svd
 
     h = np.asarray(markov, dtype=float)
@@ -319,33 +319,39 @@ def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndar
     big_a = a + o_plus @ dh1 @ c_plus - o_plus @ dh0 @ c_plus @ a
     big_b = b + np.einsum("ij,rjk,k->ri", o_plus, dh0, projector[:, 0])
     big_c = c + dh0[:, 0, :] @ c_plus
-    poles = np.linalg.eigvals(big_a)
-    closed = np.linalg.eigvals(big_a - big_b[:, :, None] * big_c[:, None, :])
-    numerator = _monic(closed) - _monic(poles) + h[0] * _monic(poles)
+    denominator = _characteristic_polynomials(big_a)
+    numerator = (_characteristic_polynomials(big_a - big_b[:, :, None] * big_c[:, None, :]) - denominator
+                 + (h[0] + directions[:, :1]) * denominator)
     numerator[:, :delay] = 0.0
-    lead = numerator[:, delay]
-    degree = order - delay
-    if degree > 0 and np.all(lead != 0.0):
-        companion = np.zeros((directions.shape[0], degree, degree))
-        companion[:, 0, :] = -numerator[:, delay + 1 :] / lead[:, None]
-        companion[:, np.arange(1, degree), np.arange(degree - 1)] = 1.0
-        zeros = np.linalg.eigvals(companion)
-    else:
-        zeros = np.zeros((directions.shape[0], 0), dtype=complex)
-    from .linear import _sorted_roots
+    from .linear import _sorted_roots, eigenvalues
 
-    return tuple(_root_std((_matched(batch[1:], nominal) - nominal) / STEP)
-                 for batch, nominal in ((poles, _sorted_roots(poles[0].tolist())),
-                                        (zeros, _sorted_roots(zeros[0].tolist()))))
+    poles = _sorted_roots(eigenvalues(a).tolist())
+    zeros = _sorted_roots(np.roots(numerator[0, delay:]).tolist()) if order > delay else np.zeros(0, dtype=complex)
+    return _root_std(_root_derivatives(denominator, poles)), _root_std(_root_derivatives(numerator, zeros))
 
 
-def _monic(roots: np.ndarray) -> np.ndarray:
-    """Coefficients (z^n first) of prod (z - root) for each row of ``roots`` (batch x n), real parts."""
-    coefficients = np.zeros((roots.shape[0], roots.shape[1] + 1), dtype=complex)
+def _characteristic_polynomials(matrices: np.ndarray) -> np.ndarray:
+    """det(zI - M) of each matrix of a batch (r x n x n): coefficients of z^n .. z^0 (r x (n + 1)),
+    by the Faddeev-LeVerrier recursion M_k = M M_(k-1) + c_(k-1) I, c_k = -tr(M M_k) / k."""
+    count, n = matrices.shape[0], matrices.shape[1]
+    coefficients = np.zeros((count, n + 1))
     coefficients[:, 0] = 1.0
-    for k in range(roots.shape[1]):
-        coefficients[:, 1 : k + 2] -= roots[:, k : k + 1] * coefficients[:, : k + 1].copy()
-    return coefficients.real
+    power = np.zeros_like(matrices)
+    for k in range(1, n + 1):
+        power = matrices @ power + coefficients[:, k - 1, None, None] * np.eye(n)
+        coefficients[:, k] = -np.trace(matrices @ power, axis1=1, axis2=2) / k
+    return coefficients
+
+
+def _root_derivatives(polynomials: np.ndarray, roots: np.ndarray) -> np.ndarray:
+    """dz = -dP(z) / P'(z) for each root z of P = polynomials[0] and each perturbed polynomial
+    polynomials[1:] (rows; dP their difference from P over STEP): r x roots."""
+    nominal = polynomials[0]
+    if roots.size == 0:
+        return np.zeros((polynomials.shape[0] - 1, 0), dtype=complex)
+    powers = roots[None, :] ** np.arange(nominal.size - 1, -1, -1)[:, None]  # z^(n-j), j = 0..n
+    slope = np.polyval(np.polyder(np.trim_zeros(nominal, "f")), roots)
+    return -((polynomials[1:] - nominal) / STEP) @ powers / slope
 
 
 # --- subseries (methods without a tractable covariance) ---------------------------------------

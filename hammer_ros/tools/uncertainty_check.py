@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 import timeit
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -86,8 +87,9 @@ def monte_carlo(system: System, method: str, runs: int, seed: int = 0) -> dict:
 
 def solve_cost(window: int = 4000, repeats: int = 200) -> dict:
     """p50 / p99 ms of the node's CLS mu-Markov solve (``solve_snapshot``, W = ``window``, tau_max 66) with
-    the bounds and without them (``cls_uncertainty`` replaced by None), the bounds alone, and the
-    bench's goal row (in a ``SolverProcess`` beside ingestion at half its limit) with the bounds."""
+    the bounds and without them (``cls_uncertainty`` replaced by None; wall time and the thread's CPU
+    time, which a loaded machine inflates less), the bounds alone, and the bench's goal row (in a
+    ``SolverProcess`` beside ingestion at half its limit) with the bounds."""
     from ..identification import correlation_least_squares as cls
     from ..streaming.engine import solve_snapshot
     from .bench import SolveCase, feed_engine, hammerstein_record, loaded_solve_latencies
@@ -97,16 +99,20 @@ def solve_cost(window: int = 4000, repeats: int = 200) -> dict:
     snap = feed_engine(case.config(window), v, y, chunk=1000).snapshot()
     with_bounds = cls.cls_uncertainty
     times: dict[str, list[float]] = {"with": [], "without": []}
+    cpu: dict[str, list[float]] = {"with": [], "without": []}
     solve_snapshot(snap)
     try:
         for _ in range(repeats):  # alternately, so that both see the same load of the machine
             for label, function in (("with", with_bounds), ("without", lambda *args: None)):
                 cls.cls_uncertainty = function
+                started = time.thread_time()
                 times[label].append(solve_snapshot(snap).solve_seconds * 1e3)
+                cpu[label].append((time.thread_time() - started) * 1e3)
     finally:
         cls.cls_uncertainty = with_bounds
-    out = {label: {"p50_ms": float(np.percentile(t, 50)), "p99_ms": float(np.percentile(t, 99))}
-           for label, t in times.items()}
+    out = {label: {"p50_ms": float(np.percentile(t, 50)), "p99_ms": float(np.percentile(t, 99)),
+                   "cpu_p50_ms": float(np.percentile(cpu[label], 50)),
+                   "cpu_p99_ms": float(np.percentile(cpu[label], 99))} for label, t in times.items()}
     arguments = (snap.phi_vv, snap.phi_yv, snap.v, snap.y, 3, 1, 30, *cls._step_two_map(snap.v, 3, None))
     out["bounds_alone_ms"] = 1e3 * min(timeit.repeat(lambda: with_bounds(*arguments), number=20, repeat=5)) / 20
     process = loaded_solve_latencies(case, window, repeats, in_process=True)  # the bench's goal row, with the bounds
