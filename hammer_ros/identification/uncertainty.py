@@ -132,8 +132,14 @@ def regression_covariance(phi: np.ndarray, residual: np.ndarray, instruments: np
 
 
 def square_root(covariance: np.ndarray) -> np.ndarray:
-    """L (p x r) with L L^T = Cov, r its numerical rank (symmetric eigendecomposition)."""
-    w, q = np.linalg.eigh((covariance + covariance.T) / 2.0)
+    """L (p x r) with L L^T = Cov: its Cholesky factor, or where Cov is singular the symmetric
+    eigendecomposition's, r the numerical rank."""
+    symmetric = (covariance + covariance.T) / 2.0
+    try:
+        return np.linalg.cholesky(symmetric)
+    except np.linalg.LinAlgError:
+        pass
+    w, q = np.linalg.eigh(symmetric)
     keep = w > RANK_TOLERANCE * max(float(w.max(initial=0.0)), np.finfo(float).tiny)
     return q[:, keep] * np.sqrt(w[keep])
 
@@ -220,9 +226,9 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     tau_max = (np.size(phi_vv) - 1) // 2
     reg = build_regression(np.asarray(phi_yv, dtype=float), np.asarray(phi_vv, dtype=float), order, delay, mu)
     x = np.column_stack([reg.phi, np.ones(reg.rows.size)])
-    theta = least_squares_qr(x, reg.target)
     q, r = np.linalg.qr(x)
     pseudo_inverse = solve_triangular(r, q.T)  # X^+ (p x rows)
+    theta = pseudo_inverse @ reg.target  # the step-1 estimate (``least_squares_qr``, full rank)
     n = order
     a, coefficients = theta[:n], theta[n:-1]
     output_lags, input_lags = markov_lags(order, delay, mu)
@@ -326,7 +332,11 @@ def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndar
     from .linear import _sorted_roots, eigenvalues
 
     poles = _sorted_roots(eigenvalues(a).tolist())
-    zeros = _sorted_roots(np.roots(numerator[0, delay:]).tolist()) if order > delay else np.zeros(0, dtype=complex)
+    zeros = np.zeros(0, dtype=complex)
+    if order > delay:  # the roots of the numerator's n - delay degree part, by its companion matrix
+        companion = np.eye(order - delay, k=-1)
+        companion[0] = -numerator[0, delay + 1 :] / numerator[0, delay]
+        zeros = _sorted_roots(eigenvalues(companion).tolist())
     return _root_std(_root_derivatives(denominator, poles)), _root_std(_root_derivatives(numerator, zeros))
 
 
@@ -349,8 +359,9 @@ def _root_derivatives(polynomials: np.ndarray, roots: np.ndarray) -> np.ndarray:
     nominal = polynomials[0]
     if roots.size == 0:
         return np.zeros((polynomials.shape[0] - 1, 0), dtype=complex)
-    powers = roots[None, :] ** np.arange(nominal.size - 1, -1, -1)[:, None]  # z^(n-j), j = 0..n
-    slope = np.polyval(np.polyder(np.trim_zeros(nominal, "f")), roots)
+    degree = nominal.size - 1
+    powers = roots[None, :] ** np.arange(degree, -1, -1)[:, None]  # z^(n-j), j = 0..n
+    slope = (nominal[:-1] * np.arange(degree, 0, -1)) @ powers[1:]  # P'(z) = sum_j (n-j) c_j z^(n-j-1)
     return -((polynomials[1:] - nominal) / STEP) @ powers / slope
 
 
