@@ -179,7 +179,11 @@ def propagate(figures: Callable[[np.ndarray], Figures], theta: np.ndarray,
     do = np.zeros((root.shape[1], np.size(others)))
     for i, direction in enumerate(root.T):
         p, z, o = figures(theta + STEP * direction)
-        dp[i], dz[i], do[i] = _matched(p, poles)[0] - poles, _matched(z, zeros)[0] - zeros, np.asarray(o) - others
+        if poles.size:
+            dp[i] = _matched(p, poles)[0] - poles
+        if zeros.size:
+            dz[i] = _matched(z, zeros)[0] - zeros
+        do[i] = np.asarray(o) - others
     dp, dz, do = dp / STEP, dz / STEP, do / STEP
     return _root_std(dp), _root_std(dz), do.T @ do
 
@@ -325,9 +329,10 @@ def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndar
     big_a = a + o_plus @ dh1 @ c_plus - o_plus @ dh0 @ c_plus @ a
     big_b = b + np.einsum("ij,rjk,k->ri", o_plus, dh0, projector[:, 0])
     big_c = c + dh0[:, 0, :] @ c_plus
-    denominator = _characteristic_polynomials(big_a)
-    numerator = (_characteristic_polynomials(big_a - big_b[:, :, None] * big_c[:, None, :]) - denominator
-                 + (h[0] + directions[:, :1]) * denominator)
+    count = directions.shape[0]  # det(zI - A) and det(zI - A + BC) of every direction in one batch
+    both = _characteristic_polynomials(np.concatenate([big_a, big_a - big_b[:, :, None] * big_c[:, None, :]]))
+    denominator = both[:count]
+    numerator = both[count:] - denominator + (h[0] + directions[:, :1]) * denominator
     numerator[:, :delay] = 0.0
     from .linear import _sorted_roots, eigenvalues
 
