@@ -224,7 +224,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``)."""
     from scipy.linalg import solve_triangular
 
-    from .regression import build_regression, largest_lag, least_squares_qr, markov_lags
+    from .regression import build_regression, largest_lag, markov_lags
 
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     tau_max = (np.size(phi_vv) - 1) // 2
@@ -277,9 +277,9 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     regressors[:, 0] = numerator.sum()
     for column in range(1, basis.shape[1]):  # the basis filtered by B_hat (rows from the largest lag on)
         regressors[:, column] = np.convolve(basis[:, column], numerator, "valid")
-    gamma = least_squares_qr(regressors, target)
-    residual = target - regressors @ gamma
     normal_inverse = np.linalg.inv(regressors.T @ regressors)
+    gamma = normal_inverse @ (regressors.T @ target)  # step 2's estimate (a handful of columns: normal equations)
+    residual = target - regressors @ gamma
     mapped = basis @ gamma
     lags = [first - output_lags, first - input_lags]  # R^T D by correlations: column c, shift first - lag
     products = np.array([np.concatenate([np.correlate(y, column, "valid")[lags[0]],
