@@ -50,7 +50,7 @@ class EngineConfig:
     min_fill: float = 0.25  # fraction of the window needed before the first solve
     min_excitation: float = 0.1  # input std needed, relative to the windows behind the published models; 0 = off
     refine: bool = False  # refine each solve's estimate on the simulation error (identification.refinement)
-    max_relative_sd: float = 0.25  # a model with a pole's or the gain's sd above this x its size is uncertain; 0 = off
+    max_relative_sd: float = 0.25  # pole sd / max(|p|, 1 - |p|), gain sd / |gain| above: uncertain; 0 = off
 
     def validated(self) -> EngineConfig:
         """self, or a UsageError naming the first invalid field and why."""

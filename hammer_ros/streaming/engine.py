@@ -414,8 +414,10 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
 def too_uncertain(result: IdentificationResult, max_relative_sd: float) -> str:
     """'' or why the model's bounds are too wide to publish it (``max_relative_sd`` 0: never): a pole
     whose 95 % interval of the modulus, |p| +- 1.96 sd(|p|), crosses the unit circle (sd(|p|) to first
-    order sqrt((re sd_re)^2 + (im sd_im)^2) / |p|), or a pole's or the gain's sd above
-    ``max_relative_sd`` x its modulus. The last confident model then stays, marked stale."""
+    order sqrt((re sd_re)^2 + (im sd_im)^2) / |p|), a pole's sd above ``max_relative_sd`` x the larger
+    of |p| and 1 - |p| (a fast pole near 0 is measured against the unit circle, not against its own
+    small modulus), or the gain's sd above ``max_relative_sd`` x |gain|. The last confident model
+    then stays, marked stale."""
     bounds = result.uncertainty
     if bounds is None or max_relative_sd <= 0:
         return ""
@@ -424,8 +426,9 @@ def too_uncertain(result: IdentificationResult, max_relative_sd: float) -> str:
         sd = math.hypot(pole.real * sd_re, pole.imag * sd_im) / radius if radius > 0 else math.hypot(sd_re, sd_im)
         if not math.isfinite(sd) or (radius - 1.0) * (radius - 1.0) <= (1.96 * sd) ** 2:
             return f"the 95 % interval of pole {pole:.4g} (|p| {radius:.4g} +- {1.96 * sd:.2g}) crosses the unit circle"
-        if math.hypot(sd_re, sd_im) > max_relative_sd * radius:
-            return f"pole {pole:.4g} has sd {math.hypot(sd_re, sd_im):.2g} > max_relative_sd {max_relative_sd:g} x |p|"
+        if math.hypot(sd_re, sd_im) > max_relative_sd * max(radius, 1.0 - radius):
+            return (f"pole {pole:.4g} has sd {math.hypot(sd_re, sd_im):.2g} > max_relative_sd {max_relative_sd:g} "
+                    f"x max(|p|, 1 - |p|)")
     if bounds.gain_std is not None and result.gain is not None and bounds.gain_std > max_relative_sd * abs(result.gain):
         return f"gain {result.gain:.4g} has sd {bounds.gain_std:.2g} > max_relative_sd {max_relative_sd:g} x |gain|"
     return ""
