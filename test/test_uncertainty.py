@@ -193,3 +193,21 @@ def test_fleet_parquet_holds_the_bounds(tmp_path):
     slowest = int(np.argmax([abs(complex(*p)) for p in doc["poles"]]))
     radius, sd = abs(complex(*doc["poles"][slowest])), doc["poles_std"][slowest][0]  # a real pole
     assert flat["time_constant_std"] == pytest.approx(sd / (radius * np.log(radius) ** 2) / 100.0)
+
+
+def test_a_pole_interval_across_the_unit_circle_makes_the_model_uncertain():
+    """A slow pole (0.99) from a short, noisy record (3000 samples, output noise half the output's std):
+    0.978 +- 1.96 x 0.014 reaches past 1, whatever max_relative_sd allows; the same plant from a long
+    clean record (0.9900 +- 0.0006) is confident."""
+    from hammer_ros.identification.linear import LinearModel
+    from hammer_ros.streaming.engine import too_uncertain
+
+    plant = LinearModel.from_zeros_poles([], [0.99])
+    rng = np.random.default_rng(3)
+    v = rng.standard_normal(20000) / (2.0 * np.pi)
+    x = plant.simulate(v + 4 * v**3)
+    short = identify("cls-arx", v[:3000], x[:3000] + 0.5 * np.std(x) * rng.standard_normal(3000),
+                     IdentifyOptions(order=1))
+    assert "crosses the unit circle" in too_uncertain(short, 1e6)
+    long = identify("cls-arx", v, x + 0.03 * np.std(x) * rng.standard_normal(v.size), IdentifyOptions(order=1))
+    assert too_uncertain(long, 0.25) == ""
