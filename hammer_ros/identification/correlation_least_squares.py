@@ -44,7 +44,7 @@ from .regression import Regression, fit_regression, largest_lag, least_squares_q
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
-from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, propagate, regression_covariance
+from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, guarded, propagate, regression_covariance
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -367,8 +367,8 @@ def cls_from_correlations(
                                                options.partition)
     extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
     partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
-    uncertainty = cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition))
+    uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition)))
     return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
 
 
@@ -403,8 +403,8 @@ def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
     v, y = _check_record(v, y)  # bai_two_stage_nls, its regression kept for the bounds
     reg, a, lumped = _least_squares_fit(y, polynomial_basis(v, options.poly), options.order, options.delay, mu)
     estimate = _nls_stage_two(a, lumped, options.order, options.delay, mu)
-    uncertainty = _regression_uncertainty(reg, np.concatenate([a, lumped.ravel()]), options.order, options.delay, mu,
-                                          _rank_one)
+    uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, lumped.ravel()]), options.order,
+                          options.delay, mu, _rank_one)
     return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
 
 
@@ -414,8 +414,8 @@ def identify_ls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -
     v, y = _check_record(v, y)  # standard_least_squares, its regression kept for the bounds
     reg, a, coefficients = _least_squares_fit(y, v, options.order, options.delay, mu)
     estimate = HammersteinEstimate(linear_estimate(a, coefficients[:, 0], options.order, options.delay, mu), None)
-    uncertainty = _regression_uncertainty(reg, np.concatenate([a, coefficients.ravel()]), options.order,
-                                          options.delay, mu, lambda coefficients: (coefficients[:, 0], None))
+    uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, coefficients.ravel()]), options.order,
+                          options.delay, mu, lambda coefficients: (coefficients[:, 0], None))
     return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
 
 

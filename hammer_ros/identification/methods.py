@@ -66,9 +66,9 @@ def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions
     v, y, function = np.asarray(v, float), np.asarray(y, float), getattr(module, function_name)
     result = function(v, y, options, **kwargs)
     if method in SUBSERIES_METHODS:  # no tractable covariance: subseries bounds (uncertainty.subseries_uncertainty)
-        from .uncertainty import subseries_uncertainty
+        from .uncertainty import guarded, subseries_uncertainty
 
-        bounds = subseries_uncertainty(lambda a, b: function(a, b, options, **kwargs), v, y, result,
-                                       with_map=method != "semiparametric")
+        bounds = guarded(lambda: subseries_uncertainty(lambda a, b: function(a, b, options, **kwargs), v, y, result,
+                                                       with_map=method != "semiparametric"))
         result = replace(result, uncertainty=bounds)
     return result

@@ -48,7 +48,7 @@ from .regression import Regression, build_regression, lagged_columns, solve_leas
 from .result import IdentificationResult
 from .simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
 from .static_maps import PiecewiseLinearMap, map_parameters
-from .uncertainty import Uncertainty, propagate, regression_covariance
+from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
 
 STRUCTURES = ("hammerstein", "feedback", "hammerstein_feedback")
 DEFAULT_BREAKPOINTS = 10  # p = 10 as in paper 001, eq. 74
@@ -366,8 +366,8 @@ def plls(
             estimate = blocks(theta)
     if not uncertainty:
         return estimate
-    covariance = regression_covariance(phi, reg.target - phi @ theta, z)
-    return replace(estimate, uncertainty=plls_uncertainty(blocks, theta, covariance, z is not None))
+    return replace(estimate, uncertainty=guarded(lambda: plls_uncertainty(
+        blocks, theta, regression_covariance(phi, reg.target - phi @ theta, z), z is not None)))
 
 
 def _instrumental_step(estimate: PllsEstimate, u: np.ndarray, eta: np.ndarray, order: int, delay: int,

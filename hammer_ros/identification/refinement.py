@@ -35,7 +35,7 @@ from .result import IdentificationResult
 from .simulate import simulate_feedback, simulate_hammerstein_feedback
 from .simulation_error import refine, settling_samples, stabilised_denominator
 from .static_maps import MapParameters, PiecewiseLinearMap, PolynomialMap, map_parameters
-from .uncertainty import Uncertainty, propagate, regression_covariance
+from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
 
 MAX_ITERATIONS = 50  # LM iterations (each costs a simulation per parameter for the Jacobian)
 POLYNOMIAL_KNOTS = 11  # quantiles of the input at which a polynomial F becomes piecewise linear
@@ -164,7 +164,7 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray,
     return replace(result, linear=linear, simulate=structure.simulator(theta), gain=None, markov=markov,
                    nonlinearity=maps.get("nonlinearity", result.nonlinearity),
                    feedback_nonlinearity=maps.get("feedback_nonlinearity", result.feedback_nonlinearity),
-                   extra=extra, uncertainty=_refined_uncertainty(structure, theta, v, y, skip))
+                   extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip))
 
 
 def _refined_uncertainty(structure: _Structure, theta: np.ndarray, v: np.ndarray, y: np.ndarray,

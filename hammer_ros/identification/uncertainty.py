@@ -71,17 +71,32 @@ class Uncertainty:
 
     def add_to(self, doc: dict, nonlinearity=None) -> None:
         """The contract's keys into an ``identify`` document: poles_std, zeros_std, gain_std (when
-        the document has a gain) and nonlinearity.points_std (one sd per point)."""
-        doc["poles_std"] = np.asarray(self.poles_std, dtype=float).reshape(-1, 2).tolist()
-        doc["zeros_std"] = np.asarray(self.zeros_std, dtype=float).reshape(-1, 2).tolist()
+        the document has a gain) and nonlinearity.points_std (one sd per point); a non-finite sd is null."""
+        doc["poles_std"] = _finite(np.asarray(self.poles_std, dtype=float).reshape(-1, 2))
+        doc["zeros_std"] = _finite(np.asarray(self.zeros_std, dtype=float).reshape(-1, 2))
         if self.gain_std is not None and "gain" in doc:
-            doc["gain_std"] = float(self.gain_std)
+            doc["gain_std"] = _finite(np.asarray(self.gain_std, dtype=float))
         points = doc.get("nonlinearity", {}).get("points")
         if points:
             sd = self.points_std(nonlinearity, np.asarray(points, dtype=float)[:, 0])
             if sd is not None:
-                doc["nonlinearity"]["points_std"] = sd.tolist()
+                doc["nonlinearity"]["points_std"] = _finite(sd)
         doc["uncertainty"] = self.how
+
+
+def _finite(values: np.ndarray):
+    """``values.tolist()`` with NaN / inf as None (strict JSON)."""
+    return np.where(np.isfinite(values), values, None).tolist()
+
+
+def guarded(compute: Callable[..., Uncertainty | None], *args) -> Uncertainty | None:
+    """``compute(*args)``, or None when the bounds cannot be made (a singular covariance or step-2
+    matrix, non-finite data): a model without bounds is still a model."""
+    try:
+        with np.errstate(all="ignore"):
+            return compute(*args)
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError, FloatingPointError):
+        return None
 
 
 def map_gradient(nonlinearity, u: np.ndarray) -> np.ndarray:
