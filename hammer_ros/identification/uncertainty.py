@@ -16,7 +16,8 @@ coefficients, or those and a second stage). The bounds are made in two steps:
    It needs neither white nor Gaussian equation errors nor independence of noise and
    regressors beyond the block length: the equation error of an ARX fit to output noise is
    MA(n), a Hammerstein map's distortion is non-Gaussian and depends on the input - the plain
-   sigma^2 (Phi^T Phi)^-1 is wrong for both (7x too small for CLS on paper 000's cubic map).
+   sigma^2 (Phi^T Phi)^-1 is wrong for both (for CLS on paper 000's cubic map the distortion's
+   E[d^2 v^2] is 7x the E[d^2] E[v^2] that independence would give).
    B = ``BLOCKS`` (32) gives the sd to about 13 % (B - 1 degrees of freedom).
 2. **First-order propagation** (the delta method; Hjalmarsson & Maartensson, "A geometric
    approach to variance analysis in system identification", IEEE TAC 56(5), 2011, for smooth
