@@ -238,7 +238,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
 
     ``basis`` is step 2's basis of v (its first column the constant), ``normalised`` maps gamma to
     (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``)."""
-    from scipy.linalg import solve_triangular
+    from scipy.linalg import lapack
 
     from .regression import build_regression, largest_lag, markov_lags
 
@@ -246,8 +246,9 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     tau_max = (np.size(phi_vv) - 1) // 2
     reg = build_regression(np.asarray(phi_yv, dtype=float), np.asarray(phi_vv, dtype=float), order, delay, mu)
     x = np.column_stack([reg.phi, np.ones(reg.rows.size)])
-    q, r = np.linalg.qr(x)
-    pseudo_inverse = solve_triangular(r, q.T)  # X^+ (p x rows)
+    qr, tau, _, _ = lapack.dgeqrf(x)
+    q, _, _ = lapack.dorgqr(qr, tau)
+    pseudo_inverse, _ = lapack.dtrtrs(qr[: x.shape[1], : x.shape[1]], q.T)  # X^+ = R^-1 Q^T (p x rows)
     theta = pseudo_inverse @ reg.target  # the step-1 estimate (``least_squares_qr``, full rank)
     n = order
     a, coefficients = theta[:n], theta[n:-1]
@@ -297,10 +298,10 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     gamma = normal_inverse @ (regressors.T @ target)  # step 2's estimate (a handful of columns: normal equations)
     residual = target - regressors @ gamma
     mapped = basis @ gamma
-    lags = [first - output_lags, first - input_lags]  # R^T D by correlations: column c, shift first - lag
-    products = np.array([np.concatenate([np.correlate(y, column, "valid")[lags[0]],
-                                         -np.correlate(mapped, column, "valid")[lags[1]]])
-                         for column in regressors.T])
+    lagged_y = np.column_stack([y[first - lag : first - lag + rows] for lag in output_lags.tolist()])
+    shifts = first - input_lags  # R^T D: the y-lag columns directly, the many map-lag ones by correlations
+    products = np.column_stack([regressors.T @ lagged_y,
+                                -np.array([np.correlate(mapped, column, "valid")[shifts] for column in regressors.T])])
     sensitivity = normal_inverse @ products  # dgamma / d(step-1 coefficients), D as in the docstring
     edges = np.concatenate([[0], starts[1:] - first])
     g2 = np.add.reduceat(regressors * residual[:, None], edges, axis=0) @ normal_inverse.T
