@@ -97,7 +97,7 @@ def report(rows: list[dict], sources, sample_rate: float, out_dir: Path, as_json
     noise = {q: relative_noise([s.values[q] for s in series]) for q in (series[0].values if series else {})}
     tests, changes = {}, []
     for s in series:
-        tests[s.group], found = group_changes(s.group, s.times, s.values, noise)
+        tests[s.group], found = group_changes(s.group, s.times, s.values, noise, s.sds)
         changes += found
     by_group = {s.group: s for s in series}
     write_report(out_dir / HTML, series, tests, changes, rows, sample_rate)

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -182,15 +182,34 @@ def theil_sen(t: Sequence[float], x: Sequence[float]) -> float:
     return float(np.median((x[j] - x[i])[keep] / dt[keep])) if keep.any() else math.nan
 
 
+def within_intervals(change: Change, sds: Sequence[float]) -> bool:
+    """Whether a change lies inside the models' own combined 95 % intervals: |latest - reference| <=
+    1.96 sqrt(sd_latest^2 + sd_reference^2), sd_latest the median sd of the last ``SIZE_BAGS``
+    flagged bags, sd_reference that of the bags before the onset (False when the sds are unknown)."""
+    sd = np.asarray(sds, dtype=float)
+    latest = change.reference * (1 + change.size) if math.isfinite(change.size) else math.inf
+    before, after = sd[: change.onset], sd[list(change.flagged[-SIZE_BAGS:])]
+    before, after = before[np.isfinite(before)], after[np.isfinite(after)]
+    if not before.size or not after.size:
+        return False
+    return abs(latest - change.reference) <= 1.96 * math.hypot(float(np.median(after)), float(np.median(before)))
+
+
 def group_changes(group: str, times: Sequence[float], series: Mapping[str, Sequence[float]],
-                  noise: Mapping[str, float] | None = None) -> tuple[dict[str, SeriesTest], list[GroupChange]]:
+                  noise: Mapping[str, float] | None = None,
+                  sds: Mapping[str, Sequence[float]] | None = None) -> tuple[dict[str, SeriesTest], list[GroupChange]]:
     """The test of every quantity of one group (``times`` in seconds, the series in that order;
-    ``noise``: quantity -> ``relative_noise`` of the fleet)."""
+    ``noise``: quantity -> ``relative_noise`` of the fleet; ``sds``: quantity -> the sd of each bag's
+    value from its model's bounds: a change inside the combined intervals (``within_intervals``) is
+    not reported)."""
     tests, changes = {}, []
     for quantity, values in series.items():
         test = cusum_change(values, quantity, times, (noise or {}).get(quantity, 0.0))
-        tests[quantity] = test
         c = test.change
+        if c is not None and quantity in (sds or {}) and within_intervals(c, sds[quantity]):
+            test = replace(test, change=None)
+            c = None
+        tests[quantity] = test
         if c is not None:
             x = np.asarray(values, dtype=float)
             changes.append(GroupChange(group, quantity, c.onset, len(c.flagged), c.size, c.reference,

@@ -1,6 +1,7 @@
 """``DIR/fleet.html``: one self-contained page (plots as PNG data URIs, inline CSS, the diagnosis
 report's helpers): the changes, then per group the trend of each quantity over time with the
-history's median and scale, the flagged bags marked and the onset drawn; the failed bags."""
+history's median and scale, each bag's 95 % interval where its model's bounds give one, the flagged
+bags marked and the onset drawn; the failed bags."""
 
 from __future__ import annotations
 
@@ -97,6 +98,10 @@ def _group_figure(series: GroupSeries, tests: dict[str, SeriesTest], sample_rate
         values = series.values[key]
         test = tests.get(key)
         ax.plot(when, values, "o-", color="#1f5fa8", ms=4, lw=1, label="bags")
+        sds = series.sds.get(key)
+        if sds is not None and np.isfinite(sds).any():  # each bag's 95 % interval from its model's bounds
+            ax.errorbar(when, values, yerr=1.96 * np.nan_to_num(sds), fmt="none", ecolor="#1f5fa8", elinewidth=1,
+                        capsize=2, alpha=0.6, label="95 % interval")
         change = test.change if test else None
         if change is not None:
             idx = list(change.flagged)

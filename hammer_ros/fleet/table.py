@@ -2,7 +2,9 @@
 
 One row per bag. Columns: ``path``, ``group``, one column per label, ``start_time`` /
 ``end_time`` (UTC timestamps of the first and last sample), ``samples``, ``solves``, ``method``,
-``order``, ``poles_re`` / ``poles_im`` / ``zeros_re`` / ``zeros_im`` (lists), the quantities of
+``order``, ``poles_re`` / ``poles_im`` / ``zeros_re`` / ``zeros_im`` (lists) with their sds
+``poles_std_re`` / ``poles_std_im`` / ``zeros_std_re`` / ``zeros_std_im`` (lists), ``gain_std`` and
+``time_constant_std`` (``quantity_sds``), the quantities of
 ``QUANTITIES``, ``nonlinearity_kind`` / ``nonlinearity_coefficients``, ``fit_percent``, ``rms``,
 ``diagnosis_cause`` / ``diagnosis_gain`` (with ``--diagnose``), ``out`` (results MCAP),
 ``error``, ``seconds`` (the task's time on its worker), and ``model_json`` / ``diagnosis_json`` /
@@ -16,7 +18,7 @@ import json
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +71,20 @@ def model_quantities(doc: dict, sample_rate: float = 0.0) -> dict[str, float]:
     return {"static_gain": dc * large, "time_constant": tau, "small_signal_ratio": ratio}
 
 
+def quantity_sds(doc: dict, sample_rate: float = 0.0) -> dict[str, float]:
+    """The sds of the quantities that the model's bounds give (``poles_std``, docs/methods.md):
+    ``time_constant`` to first order, sd(tau) = sd(|p|) / (|p| ln^2 |p|), sd(|p|) =
+    sqrt((re sd_re)^2 + (im sd_im)^2) / |p| of the slowest pole; nan without bounds."""
+    poles, sds = doc.get("poles", []), doc.get("poles_std")
+    if not poles or not sds or len(sds) != len(poles):
+        return {"time_constant": math.nan}
+    radius, (re, im), (sd_re, sd_im) = max((abs(complex(*p)), p, s) for p, s in zip(poles, sds, strict=True))
+    if not 0 < radius < 1:
+        return {"time_constant": math.nan}
+    sd = math.hypot(re * sd_re, im * sd_im) / radius / (radius * math.log(radius) ** 2)
+    return {"time_constant": sd / sample_rate if sample_rate > 0 else sd}
+
+
 def label_keys(rows: Sequence[dict]) -> list[str]:
     keys: list[str] = []
     for row in rows:
@@ -84,6 +100,7 @@ def flat_rows(rows: Sequence[dict], sample_rate: float = 0.0) -> list[dict[str, 
         doc, diag = row.get("model") or {}, row.get("diagnosis") or {}
         quantities = model_quantities(doc, sample_rate) if doc else dict.fromkeys(QUANTITIES, math.nan)
         poles, zeros = doc.get("poles", []), doc.get("zeros", [])
+        poles_std, zeros_std = doc.get("poles_std", []), doc.get("zeros_std", [])
         flat: dict[str, Any] = {"path": row["path"], "group": row["group"]}
         flat.update({f"label_{k}" if k in RESERVED else k: row["labels"].get(k) for k in labels})
         flat.update(
@@ -91,6 +108,10 @@ def flat_rows(rows: Sequence[dict], sample_rate: float = 0.0) -> list[dict[str, 
             samples=doc.get("samples"), solves=doc.get("solves"), method=doc.get("method"), order=doc.get("order"),
             poles_re=[p[0] for p in poles], poles_im=[p[1] for p in poles],
             zeros_re=[z[0] for z in zeros], zeros_im=[z[1] for z in zeros],
+            poles_std_re=[s[0] for s in poles_std], poles_std_im=[s[1] for s in poles_std],
+            zeros_std_re=[s[0] for s in zeros_std], zeros_std_im=[s[1] for s in zeros_std],
+            gain_std=doc.get("gain_std"),
+            time_constant_std=_finite(quantity_sds(doc, sample_rate)["time_constant"]) if doc else None,
             **{k: _finite(v) for k, v in quantities.items()},
             nonlinearity_kind=(doc.get("nonlinearity") or {}).get("kind"),
             nonlinearity_coefficients=(doc.get("nonlinearity") or {}).get("coefficients"),
@@ -119,7 +140,10 @@ def _schema(labels: Sequence[str]):
     fields += [("start_time", pa.timestamp("ns", tz="UTC")), ("end_time", pa.timestamp("ns", tz="UTC")),
                ("samples", pa.int64()), ("solves", pa.int64()), ("method", texts), ("order", pa.int64()),
                ("poles_re", pa.list_(floats)), ("poles_im", pa.list_(floats)),
-               ("zeros_re", pa.list_(floats)), ("zeros_im", pa.list_(floats))]
+               ("zeros_re", pa.list_(floats)), ("zeros_im", pa.list_(floats)),
+               ("poles_std_re", pa.list_(floats)), ("poles_std_im", pa.list_(floats)),
+               ("zeros_std_re", pa.list_(floats)), ("zeros_std_im", pa.list_(floats)),
+               ("gain_std", floats), ("time_constant_std", floats)]
     fields += [(k, floats) for k in QUANTITIES]
     fields += [("nonlinearity_kind", texts), ("nonlinearity_coefficients", pa.list_(floats)),
                ("fit_percent", floats), ("rms", floats), ("diagnosis_cause", texts), ("diagnosis_gain", floats),
@@ -181,6 +205,7 @@ class GroupSeries:
     rows: tuple[dict, ...]
     times: np.ndarray  # start of each bag, s since the epoch (bag time)
     values: dict[str, np.ndarray]  # quantity -> one value per bag (nan: not defined)
+    sds: dict[str, np.ndarray] = field(default_factory=dict)  # quantity -> its sd per bag (``quantity_sds``)
 
 
 def group_series(rows: Sequence[dict], sample_rate: float = 0.0) -> list[GroupSeries]:
@@ -194,7 +219,10 @@ def group_series(rows: Sequence[dict], sample_rate: float = 0.0) -> list[GroupSe
         members = sorted(groups[group], key=lambda r: (r["start"], r["path"]))
         quantities = [model_quantities(r["model"], sample_rate) for r in members]
         values = {q: np.array([v[q] for v in quantities], dtype=float) for q in QUANTITIES}
-        out.append(GroupSeries(group, tuple(members), np.array([r["start"] for r in members], dtype=float), values))
+        sds = [quantity_sds(r["model"], sample_rate) for r in members]
+        sds_by_quantity = {q: np.array([s[q] for s in sds], dtype=float) for q in sds[0]}
+        out.append(GroupSeries(group, tuple(members), np.array([r["start"] for r in members], dtype=float), values,
+                               sds_by_quantity))
     return out
 
 

@@ -28,6 +28,7 @@ Defaults (documented choices, the paper leaves them open):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
@@ -39,10 +40,11 @@ from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .linear import LinearModel
 from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
-from .regression import fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
+from .regression import Regression, fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
-from .static_maps import PiecewiseLinearMap, PolynomialMap
+from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
+from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, guarded, propagate, regression_covariance
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -304,20 +306,29 @@ def bai_two_stage_nls(
     """
     v, y = _check_record(v, y)
     _, a, lumped = _least_squares_fit(y, polynomial_basis(v, poly), order, delay, mu)
+    return _nls_stage_two(a, lumped, order, delay, mu)
+
+
+def _nls_stage_two(a: np.ndarray, lumped: np.ndarray, order: int, delay: int, mu: int) -> HammersteinEstimate:
+    """Stage 2 of ``bai_two_stage_nls``: the rank-one factors b_hat, gamma_hat of Theta_bgamma (eq. 12)."""
+    b_hat, coefficients = _rank_one(lumped)
+    return HammersteinEstimate(linear_estimate(a, b_hat, order, delay, mu), PolynomialMap(coefficients))
+
+
+def _rank_one(lumped: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(b_hat, F's coefficients [0, gamma_hat]) from Theta_bgamma by eq. 12 (``bai_two_stage_nls``)."""
     u, s, vt = np.linalg.svd(lumped, full_matrices=False)
     v11 = vt[0, 0]
     if s[0] == 0.0 or abs(v11) < 1e-12:
         raise IdentificationError("NLS stage 2: the linear term of F is not identifiable (V_11 = 0)")
-    b_hat = s[0] * v11 * u[:, 0]
-    gamma = vt[0] / v11
-    nonlinearity = PolynomialMap(np.concatenate([[0.0], gamma]))
-    return HammersteinEstimate(linear_estimate(a, b_hat, order, delay, mu), nonlinearity)
+    return s[0] * v11 * u[:, 0], np.concatenate([[0.0], vt[0] / v11])
 
 
 # --- the registry's entry points (hammer_ros.identification.methods) ----------------------------------------
 
 
-def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict) -> IdentificationResult:
+def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict,
+            uncertainty: Uncertainty | None = None) -> IdentificationResult:
     """The result of an estimate; picklable (its simulator a bound method or a partial, not a closure),
     so that a ``SolverProcess`` can be handed a CLS estimate made elsewhere."""
     linear, nonlinearity = estimate.linear, estimate.nonlinearity
@@ -332,6 +343,7 @@ def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict)
         nonlinearity=nonlinearity,
         markov=linear.markov,
         extra=extra,
+        uncertainty=uncertainty,
     )
 
 
@@ -354,18 +366,87 @@ def cls_from_correlations(
     estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
                                                options.partition)
     extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
-    return _result(f"cls-{structure}", estimate, options.order, extra)
+    partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
+    uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition)))
+    return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
+
+
+def _step_two_map(v: np.ndarray, poly: int, partition: np.ndarray | None):
+    """For ``cls_uncertainty``: step 2's basis of v (the constant first) and gamma -> (s, the packed
+    parameters of the unit map gamma / s), s = F'(mean v) for the polynomial (``correlation_least_squares_steps``),
+    the Bussgang gain cov(F(v), v) / var(v) for a piecewise-linear F (``piecewise_linear_step``)."""
+    if partition is None:
+        powers = np.arange(poly + 1) * v.mean() ** np.maximum(np.arange(poly + 1) - 1, 0)
+
+        def polynomial(gamma: np.ndarray) -> tuple[float, np.ndarray]:  # F'(mean) = sum_l l gamma_l mean^(l-1)
+            scale = float(powers @ gamma)
+            return scale, gamma / scale
+
+        return polynomial_basis(v, poly, constant=True), polynomial
+    primary = default_primary_index(partition)
+    eta = point_slope_basis(v, partition, primary)
+    centred = v - v.mean()
+    bussgang = eta.T @ centred / (centred @ centred)  # cov(eta(v), v) / var(v), per slope
+
+    def piecewise(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        scale = float(bussgang @ theta[1:])
+        fmap = point_slope_map(partition, primary, theta[1:] / scale, float(theta[0] / scale))
+        return scale, map_parameters(fmap).pack(fmap)
+
+    return np.column_stack([np.ones(v.size), eta]), piecewise
 
 
 def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
     """``nls-arx`` / ``nls-markov``: ``bai_two_stage_nls`` with monomials up to ``poly``."""
     mu = _mu(structure, options.mu)
-    estimate = bai_two_stage_nls(v, y, options.order, options.delay, mu, options.poly)
-    return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})
+    v, y = _check_record(v, y)  # bai_two_stage_nls, its regression kept for the bounds
+    reg, a, lumped = _least_squares_fit(y, polynomial_basis(v, options.poly), options.order, options.delay, mu)
+    estimate = _nls_stage_two(a, lumped, options.order, options.delay, mu)
+    uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, lumped.ravel()]), options.order,
+                          options.delay, mu, _rank_one)
+    return _result(f"nls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
 
 
 def identify_ls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
     """``ls-arx`` / ``ls-markov``: ``standard_least_squares`` (no nonlinearity)."""
     mu = _mu(structure, options.mu)
-    estimate = HammersteinEstimate(standard_least_squares(v, y, options.order, options.delay, mu), None)
-    return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {})
+    v, y = _check_record(v, y)  # standard_least_squares, its regression kept for the bounds
+    reg, a, coefficients = _least_squares_fit(y, v, options.order, options.delay, mu)
+    estimate = HammersteinEstimate(linear_estimate(a, coefficients[:, 0], options.order, options.delay, mu), None)
+    uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, coefficients.ravel()]), options.order,
+                          options.delay, mu, lambda coefficients: (coefficients[:, 0], None))
+    return _result(f"ls-{structure}", estimate, options.order, {"mu": mu} if mu > 1 else {}, uncertainty)
+
+
+def _regression_uncertainty(reg: Regression, theta: np.ndarray, order: int, delay: int, mu: int,
+                            factors: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]) -> Uncertainty:
+    """The bounds of a raw-data regression estimate (LS, NLS): the batch-means sandwich of the
+    least-squares fit ``theta`` of ``reg`` (``uncertainty.regression_covariance``), propagated through
+    ``factors`` (input coefficients -> (numerator h_d.., map coefficients or None)) to the gain h_d,
+    the map and the roots: of (A, B) for ARX; for mu-Markov the Markov taps' covariance goes
+    through ERA by ``era_root_std``. The intervals hold the estimator's spread, not its bias: LS
+    ignores F, and both fit an equation error that output noise makes coloured and correlated
+    with the y-lags."""
+    covariance = regression_covariance(reg.phi, reg.target - reg.phi @ theta)
+    has_map = factors(reg.split(theta)[1])[1] is not None
+
+    def figures(t: np.ndarray):
+        a, coefficients = reg.split(t)
+        numerator, fmap = factors(coefficients)
+        others = np.concatenate([numerator[:mu] if mu > 1 else [], [numerator[0]], fmap if has_map else []])
+        if mu > 1:
+            return np.zeros(0), np.zeros(0), others
+        model = LinearModel(np.concatenate([np.zeros(delay), numerator]), np.concatenate([[1.0], a]))
+        return model.poles, model.zeros, others
+
+    poles_std, zeros_std, others = propagate(figures, theta, covariance)
+    if mu > 1:
+        numerator = factors(reg.split(theta)[1])[0]
+        markov = np.concatenate([np.zeros(delay), numerator[:mu]])
+        poles_std, zeros_std = era_root_std(markov, order, delay, others[:mu, :mu])
+        others = others[mu:, mu:]
+    return Uncertainty(poles_std, zeros_std, float(np.sqrt(others[0, 0])), others[1:, 1:] if has_map else None,
+                       "least squares: batch means of the influences, first-order propagation")
+
+

@@ -8,7 +8,7 @@ signature ``fn(v, y, options, **kwargs) -> IdentificationResult`` and takes the 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,11 @@ METHODS: dict[str, tuple[str, str, dict]] = {
 }
 
 
+# methods whose bounds come from subseries; semiparametric: poles and zeros only (its map comes from
+# the single-harmonic record, which is not resampled)
+SUBSERIES_METHODS = ("bf-hammerstein", "bf-feedforward", "semiparametric")
+
+
 def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions) -> IdentificationResult:
     """Run the method called ``method`` (a key of METHODS) on the record (v, y)."""
     try:
@@ -58,4 +63,12 @@ def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions
     except KeyError:
         raise UsageError(f"--method: unknown method {method!r} (choose from {', '.join(METHODS)})") from None
     module = importlib.import_module(f"{__package__}.{module_name}")
-    return getattr(module, function_name)(np.asarray(v, float), np.asarray(y, float), options, **kwargs)
+    v, y, function = np.asarray(v, float), np.asarray(y, float), getattr(module, function_name)
+    result = function(v, y, options, **kwargs)
+    if method in SUBSERIES_METHODS:  # no tractable covariance: subseries bounds (uncertainty.subseries_uncertainty)
+        from .uncertainty import guarded, subseries_uncertainty
+
+        bounds = guarded(lambda: subseries_uncertainty(lambda a, b: function(a, b, options, **kwargs), v, y, result,
+                                                       with_map=method != "semiparametric"))
+        result = replace(result, uncertainty=bounds)
+    return result

@@ -37,7 +37,7 @@ paper (sec. 5) and our tests fix them to compare the blocks with the simulated s
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -47,10 +47,12 @@ from .methods import IdentifyOptions
 from .regression import Regression, build_regression, lagged_columns, solve_least_squares
 from .result import IdentificationResult
 from .simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
-from .static_maps import PiecewiseLinearMap
+from .static_maps import PiecewiseLinearMap, map_parameters
+from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
 
 STRUCTURES = ("hammerstein", "feedback", "hammerstein_feedback")
 DEFAULT_BREAKPOINTS = 10  # p = 10 as in paper 001, eq. 74
+INSTRUMENT_PASSES = 2  # instrumental-variable passes after least squares (``plls(instrumental=True)``)
 
 
 # --------------------------------------------------------------------------- point-slope basis
@@ -220,6 +222,7 @@ class PllsEstimate:
     feedback: PiecewiseLinearMap | None
     primary_index: int | None
     feedback_primary_index: int | None
+    uncertainty: Uncertainty | None = None
 
 
 def rank_one_factors(
@@ -297,8 +300,14 @@ def plls(
     beta: float | None = None,
     alpha: float = 0.0,
     gamma: float = 0.0,
+    instrumental: bool = False,
+    uncertainty: bool = False,
 ) -> PllsEstimate:
     """PLLS of paper 001, sec. 4 (the numbered steps at the end of 4.1, 4.2 and 4.3).
+
+    ``instrumental`` (Hammerstein only): least squares, then ``INSTRUMENT_PASSES`` passes of
+    instrumental variables (``_instrumental_step``), consistent under output noise.
+    ``uncertainty``: the estimate carries its ``uncertainty.Uncertainty`` (``plls_uncertainty``).
 
     ``partition`` c (input map f) and ``feedback_partition`` d (feedback map h) default to
     ``default_partition`` of u and y; the primary indices r and s to ``default_primary_index``.
@@ -324,29 +333,78 @@ def plls(
         zeta = point_slope_basis(y, d, s)
 
     reg, phi = _regression(y, eta if has_input_map else u, order, delay, zeta)
-    theta = solve_least_squares(phi, reg.target)  # eq. 33
     n, n_b = reg.output_lags.size, reg.input_lags.size
-    offset = theta[-1]
 
-    if structure == "hammerstein":  # eqs. 32-38
-        a = theta[:n]
-        b, mu = rank_one_factors(reg.split(theta[:-1])[1], beta, a)
-        kappa = offset / np.sum(b)  # eq. 38
-        return _estimate(a, b, delay, (c, r, mu, kappa), None)
+    def blocks(theta: np.ndarray) -> PllsEstimate:
+        """The blocks from the lifted parameters theta~ (eqs. 32-38, 53, 60-62, 70-71)."""
+        offset = theta[-1]
+        if structure == "hammerstein":  # eqs. 32-38
+            a = theta[:n]
+            b, mu = rank_one_factors(reg.split(theta[:-1])[1], beta, a)
+            kappa = offset / np.sum(b)  # eq. 38
+            return _estimate(a, b, delay, (c, r, mu, kappa), None)
+        theta_a = theta[: n * zeta.shape[1]].reshape(n, zeta.shape[1])
+        theta_in = theta[n * zeta.shape[1] : -1].reshape(n_b, -1)
+        if structure == "feedback":  # eqs. 53, 60-62
+            b = theta_in[:, 0]
+        else:  # eqs. 70, 37
+            b, mu = rank_one_factors(theta_in, beta, theta_a.mean(axis=1))  # a of eq. 60 at alpha = 0
+        a, nu = feedback_factors(theta_a, _on_output_lags(b, n), alpha)
+        offset_ds = offset - d[s - 1] * np.sum(a)
+        if structure == "feedback":
+            lam = offset_ds / np.sum(b)  # eq. 62
+            return _estimate(a, b, delay, None, (d, s, nu, lam))
+        kappa = gamma - offset_ds / np.sum(b)  # eq. 71 with lambda = gamma
+        return _estimate(a, b, delay, (c, r, mu, kappa), (d, s, nu, gamma))
 
-    theta_a = theta[: n * zeta.shape[1]].reshape(n, zeta.shape[1])
-    theta_in = theta[n * zeta.shape[1] : -1].reshape(n_b, -1)
-    if structure == "feedback":  # eqs. 53, 60-62
-        b = theta_in[:, 0]
-    else:  # eqs. 70, 37
-        b, mu = rank_one_factors(theta_in, beta, theta_a.mean(axis=1))  # a of eq. 60 at alpha = 0
-    a, nu = feedback_factors(theta_a, _on_output_lags(b, n), alpha)
-    offset_ds = offset - d[s - 1] * np.sum(a)
-    if structure == "feedback":
-        lam = offset_ds / np.sum(b)  # eq. 62
-        return _estimate(a, b, delay, None, (d, s, nu, lam))
-    kappa = gamma - offset_ds / np.sum(b)  # eq. 71 with lambda = gamma
-    return _estimate(a, b, delay, (c, r, mu, kappa), (d, s, nu, gamma))
+    theta = solve_least_squares(phi, reg.target)  # eq. 33
+    estimate = blocks(theta)
+    z = None
+    if instrumental and structure == "hammerstein":
+        for _ in range(INSTRUMENT_PASSES):
+            z, theta = _instrumental_step(estimate, u, eta, order, delay, phi, reg.target, z, theta)
+            estimate = blocks(theta)
+    if not uncertainty:
+        return estimate
+    return replace(estimate, uncertainty=guarded(lambda: plls_uncertainty(
+        blocks, theta, regression_covariance(phi, reg.target - phi @ theta, z), z is not None)))
+
+
+def _instrumental_step(estimate: PllsEstimate, u: np.ndarray, eta: np.ndarray, order: int, delay: int,
+                       phi: np.ndarray, target: np.ndarray, z: np.ndarray | None,
+                       theta: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """One pass of instrumental variables (an extension of paper 001, whose least squares is
+    biased by output noise: the equation error A(q) e is coloured and correlated with the
+    y(k - j) columns). The instruments are the regressors with y replaced by the noise-free
+    simulation x_hat = G_hat f_hat(u) of the current estimate (the auxiliary-model IV of
+    Young, Automatica 1976; Soederstroem & Stoica, *System Identification* 1989, sec. 8.2),
+    uncorrelated with any noise independent of u: theta_IV = (Z^T Phi)^-1 Z^T y. Keeps
+    (z, theta) when the estimate is unstable or Z^T Phi is singular."""
+    if not estimate.linear.is_stable():
+        return z, theta
+    x_hat = simulate_hammerstein(u, estimate.nonlinearity, estimate.linear)
+    _, instruments = _regression(x_hat, eta, order, delay, None)
+    normal = instruments.T @ phi
+    if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
+        return z, theta
+    return instruments, np.linalg.solve(normal, instruments.T @ target)
+
+
+def plls_uncertainty(blocks, theta: np.ndarray, covariance: np.ndarray, instrumental: bool) -> Uncertainty:
+    """The sds of a PLLS estimate: Cov(theta~) by batch means (``uncertainty``), propagated through
+    the block recovery (rank-1 factors, Proposition 1) to the poles, zeros and the input map's
+    knot values and outer slopes."""
+    nominal = blocks(theta).nonlinearity
+    pack = None if nominal is None else map_parameters(nominal).pack
+
+    def figures(t: np.ndarray):
+        est = blocks(t)
+        return est.linear.poles, est.linear.zeros, np.zeros(0) if pack is None else pack(est.nonlinearity)
+
+    poles_std, zeros_std, map_covariance = propagate(figures, theta, covariance)
+    how = ("plls: " + ("instrumental variables" if instrumental else "least squares")
+           + ", batch means of the influences, first-order propagation")
+    return Uncertainty(poles_std, zeros_std, None, None if pack is None else map_covariance, how)
 
 
 def _on_output_lags(b: np.ndarray, order: int) -> np.ndarray:
@@ -379,7 +437,8 @@ def identify_plls(
     is c, the partition of the input map f; ``options.feedback_partition`` is d, that of the
     feedback map h (for ``feedback``, whose only map is h, ``options.partition`` is accepted as d
     too). Unset partitions: ``default_partition`` of the data (10 equally spaced breakpoints).
-    ``beta``, ``alpha``, ``gamma``: see the module docstring.
+    ``beta``, ``alpha``, ``gamma``: see the module docstring. Hammerstein: least squares, then instrumental
+    variables (``plls(instrumental=True)``); every structure reports its ``uncertainty``.
     """
     given = None if options.partition is None else np.asarray(options.partition, dtype=float)
     feedback_given = options.feedback_partition
@@ -392,6 +451,7 @@ def identify_plls(
     est = plls(
         v, y, options.order, options.delay, structure,
         partition=partition, feedback_partition=feedback_given, beta=beta, alpha=alpha, gamma=gamma,
+        instrumental=True, uncertainty=True,
     )
     if est.feedback is None:
         def simulate(x: np.ndarray) -> np.ndarray:
@@ -403,7 +463,8 @@ def identify_plls(
         def simulate(x: np.ndarray) -> np.ndarray:
             return simulate_hammerstein_feedback(x, est.nonlinearity, est.feedback, est.linear)
 
-    details = {"structure": structure, "beta": beta, "alpha": alpha, "gamma": gamma}
+    details = {"structure": structure, "beta": beta, "alpha": alpha, "gamma": gamma,
+               "estimator": "instrumental_variables" if structure == "hammerstein" else "least_squares"}
     if est.nonlinearity is not None:
         details.update(partition=est.nonlinearity.breakpoints.tolist(), primary_index=est.primary_index)
     if est.feedback is not None:
@@ -417,4 +478,5 @@ def identify_plls(
         nonlinearity=est.nonlinearity,
         feedback_nonlinearity=est.feedback,
         extra={"plls": details},
+        uncertainty=est.uncertainty,
     )

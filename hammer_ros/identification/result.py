@@ -62,6 +62,7 @@ class IdentificationResult:
     feedback_nonlinearity: Any = None
     markov: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
+    uncertainty: Any = None  # an uncertainty.Uncertainty: the sds of poles, zeros, gain and map
 
     @property
     def poles(self) -> np.ndarray:
@@ -94,6 +95,8 @@ class IdentificationResult:
             doc["feedback_nonlinearity"] = self.feedback_nonlinearity.to_json(
                 None if y is None else (float(np.min(y)), float(np.max(y)))
             )
+        if self.uncertainty is not None:
+            self.uncertainty.add_to(doc, self.nonlinearity)
         if v is not None and y is not None:
             fit, rms = fit_and_rms(y, self.simulate(v))
             doc["fit_percent"], doc["rms"] = _finite_or_none(fit), _finite_or_none(rms)

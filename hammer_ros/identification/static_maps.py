@@ -6,7 +6,8 @@ Each map is a small frozen dataclass that is callable on numpy arrays and serial
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -155,3 +156,30 @@ def with_tails(fmap: PiecewiseLinearMap, lo: float, hi: float, left: str = "slop
     return PiecewiseLinearMap(knots, values, float(slopes[0]), float(slopes[-1]),
                               curvature[0] if left == "polynomial" else 0.0,
                               curvature[1] if right == "polynomial" else 0.0)
+
+
+@dataclass(frozen=True)
+class MapParameters:
+    """A static map's free parameters and how to rebuild the map from them."""
+
+    size: int
+    pack: Callable[[object], np.ndarray]
+    unpack: Callable[[np.ndarray], object]
+
+
+def map_parameters(m: object) -> MapParameters:
+    """The free parameters of a map (polynomial: its coefficients; piecewise linear: the knot values and
+    the two outer slopes, breakpoints kept; nonparametric: its values) and how to rebuild it: what
+    ``refinement`` refines and ``uncertainty`` gives the covariance of. Every such map is linear in them."""
+    if isinstance(m, PolynomialMap):
+        return MapParameters(m.coefficients.size, lambda x: x.coefficients, PolynomialMap)
+    if isinstance(m, PiecewiseLinearMap):
+        n = m.values.size
+
+        def unpack(t: np.ndarray) -> PiecewiseLinearMap:
+            return replace(m, values=t[:n], slope_left=float(t[n]), slope_right=float(t[n + 1]))
+
+        return MapParameters(n + 2, lambda x: np.concatenate([x.values, [x.slope_left, x.slope_right]]), unpack)
+    if isinstance(m, NonparametricMap):
+        return MapParameters(m.f.size, lambda x: x.f, lambda t: NonparametricMap(m.u, t))
+    raise TypeError(f"no parameters for a {type(m).__name__}")

@@ -4,8 +4,10 @@ result messages (``outputs`` dicts); pure Python, shared by the live Foxglove se
 
 Channels ``/<node>/dashboard/<name>`` (schema): ``model`` (hammer_ros.Model: the ``~/model``
 JSON as an object); ``poles``, ``zeros`` (hammer_ros.Roots: ``real``, ``imag``, ``magnitude``
-arrays and ``points`` {x: re, y: im} for a scatter; poles also ``unit_circle``);
-``nonlinearity`` (hammer_ros.Series: ``x`` = input v, ``y`` = F(v), ``points`` {x, y});
+arrays and ``points`` {x: re, y: im} for a scatter; poles also ``unit_circle``; with the model's
+bounds ``real_lower`` / ``real_upper``, ``imag_*`` and ``magnitude_*``, the 95 % intervals);
+``nonlinearity`` (hammer_ros.Series: ``x`` = input v, ``y`` = F(v), ``points`` {x, y}; with bounds
+``y_lower`` / ``y_upper``, the 95 % band);
 ``fit`` (hammer_ros.Fit, every solve: ``fit_percent``, ``rms``, ``stale`` of the published
 model, ``window_fill_percent``, ``samples``); ``diagnosis`` (hammer_ros.Diagnosis: the
 ``~/diagnosis`` JSON as an object); ``diagnosis_log`` (foxglove.Log: one line per diagnosis,
@@ -64,7 +66,9 @@ def _schema(title: str, properties: dict[str, Any]) -> dict[str, Any]:
 
 
 _ROOTS = _schema("hammer_ros.Roots", {"real": _NUMBERS, "imag": _NUMBERS, "magnitude": _NUMBERS, "points": _POINTS,
-                                      "unit_circle": _POINTS})
+                                      "unit_circle": _POINTS, **{f"{part}_{bound}": _NUMBERS for part in
+                                                                 ("real", "imag", "magnitude")
+                                                                 for bound in ("lower", "upper")}})
 # name -> (schema name, JSON schema); the schema name is what Foxglove shows (foxglove.Log is a
 # well-known Foxglove schema, which its Log panel reads)
 CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
@@ -73,7 +77,8 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
     "poles": ("hammer_ros.Roots", _ROOTS),
     "zeros": ("hammer_ros.Roots", _ROOTS),
     "nonlinearity": ("hammer_ros.Series", _schema("hammer_ros.Series", {"x": _NUMBERS, "y": _NUMBERS,
-                                                                        "points": _POINTS})),
+                                                                        "points": _POINTS, "y_lower": _NUMBERS,
+                                                                        "y_upper": _NUMBERS})),
     "fit": ("hammer_ros.Fit", _schema("hammer_ros.Fit", {
         "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL, "stale": {"type": ["boolean", "null"]},
         "window_fill_percent": _NUMBER, "samples": _INTEGER})),
@@ -88,6 +93,10 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
         "steps": _list_of({"cause": _STRING, "structure": _STRING, "rms": _NUMBER, "gain": _NUMBER}),
         "chain_stopped": {"type": ["string", "null"]},
         "not_fitted": _list_of({"cause": _STRING, "reason": _STRING}),
+        "input_coverage": _object({"estimation_range": _NUMBERS, "validation_range": _NUMBERS, "outside": _NUMBER,
+                                   "bound": _NUMBER, "judged_samples": _INTEGER, "validation_samples": _INTEGER,
+                                   "memory": _INTEGER, "judged_on": _STRING}),
+        "split": _STRING,
         "samples": _INTEGER, "stamp": _NUMBER_OR_NULL, "seconds": _NUMBER, "error": _STRING})),
     "diagnosis_log": ("foxglove.Log", _schema("foxglove.Log", {
         "level": {"type": "integer", "description": "0 unknown, 1 debug, 2 info, 3 warning, 4 error, 5 fatal"},
@@ -136,6 +145,35 @@ def _log_line(doc: dict) -> tuple[int, str]:
                          + (f", extended model: baseline rms / its rms = {ratio:.3g}" if ratio is not None else ""))
 
 
+def _root_intervals(model: dict, roots: str) -> dict[str, list[float]]:
+    """The 95 % intervals (est +- 1.96 sd) of the real and imaginary parts and of the modulus
+    (sd(|p|) = sqrt((re sd_re)^2 + (im sd_im)^2) / |p|) of the model's ``roots`` from its ``<roots>_std``
+    (docs/methods.md); none without bounds."""
+    values, sds = model.get(roots) or [], model.get(f"{roots}_std") or []
+    if not values or len(sds) != len(values):
+        return {}
+    out: dict[str, list[float]] = {f"{part}_{bound}": [] for part in ("real", "imag", "magnitude")
+                                   for bound in ("lower", "upper")}
+    for (re, im), (sd_re, sd_im) in zip(values, sds):
+        radius = math.hypot(re, im)
+        sd_radius = math.hypot(re * sd_re, im * sd_im) / radius if radius > 0 else math.hypot(sd_re, sd_im)
+        for part, value, sd in (("real", re, sd_re), ("imag", im, sd_im), ("magnitude", radius, sd_radius)):
+            out[f"{part}_lower"].append(value - 1.96 * sd)
+            out[f"{part}_upper"].append(value + 1.96 * sd)
+    return out
+
+
+def _map_band(model: dict, count: int) -> dict[str, list[float]]:
+    """F(v) -+ 1.96 sd at the map's points (``nonlinearity.points_std``), when they are the ``count``
+    points drawn."""
+    fmap = model.get("nonlinearity") or {}
+    points, sds = fmap.get("points") or [], fmap.get("points_std") or []
+    finite = [(f, sd) for (u, f), sd in zip(points, sds) if math.isfinite(u) and math.isfinite(f)]
+    if not sds or len(sds) != len(points) or len(finite) != count:
+        return {}
+    return {"y_lower": [f - 1.96 * sd for f, sd in finite], "y_upper": [f + 1.96 * sd for f, sd in finite]}
+
+
 def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_ns: int) -> list[tuple[str, dict]]:
     """(channel, JSON message) of every dashboard channel that ``messages`` (the ``outputs``
     result messages of one solve, or the ``~/diagnosis`` message) update, stamped ``stamp_ns``."""
@@ -148,11 +186,13 @@ def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_ns: int) -> 
     for topic, channel in (("~/poles", "poles"), ("~/zeros", "zeros")):
         if topic in by_topic:
             out.append((channel, {"timestamp": timestamp, **_roots(by_topic[topic]),
-                                  **({"unit_circle": _CIRCLE} if channel == "poles" else {})}))
+                                  **({"unit_circle": _CIRCLE} if channel == "poles" else {}),
+                                  **_root_intervals(model or {}, channel)}))
     if "~/nonlinearity" in by_topic:
         points = [{"x": p["x"], "y": p["y"]} for p in by_topic["~/nonlinearity"]["polygon"]["points"]]
         out.append(("nonlinearity", {"timestamp": timestamp, "x": [p["x"] for p in points],
-                                     "y": [p["y"] for p in points], "points": points}))
+                                     "y": [p["y"] for p in points], "points": points,
+                                     **_map_band(model or {}, len(points))}))
     if "/diagnostics" in by_topic:
         status = by_topic["/diagnostics"]["status"][0]
         values = {kv["key"]: _number(kv["value"]) for kv in status["values"]}

@@ -127,6 +127,9 @@ PARAMETERS: dict[str, Spec] = {
     "min_excitation": Spec(0.1, "float", "input std needed, relative to the windows behind the published "
                            "models (below: 'not persistently exciting', the last model stays, marked stale); 0 = off",
                            0.0, 1.0),
+    "max_relative_sd": Spec(0.25, "float", "a new model whose pole interval crosses the unit circle or whose pole "
+                            "(gain) sd exceeds this x max(|p|, 1 - |p|) (|gain|) is 'uncertain' (the last "
+                            "confident model stays, marked stale); 0 = off", 0.0, 1e6),
     "refine": Spec(False, "bool", "refine each solve's estimate on the simulation error of the window "
                    "(identify --refine; slower solves, unbiased poles under output noise)"),
     "solve_rate": Spec(2.0, "float", "solves per second (a slow solve skips solves, never samples)", 0.01, 1000.0),

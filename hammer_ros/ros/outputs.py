@@ -158,6 +158,7 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         "solve_errors": stats.solve_errors,
         "not_exciting": stats.not_exciting,
         "kept_published": stats.kept_published,
+        "uncertain": stats.uncertain,
         "solve_failures": stats.solve_failures,
         "solve_exceptions": stats.solve_exceptions,
     }
@@ -169,7 +170,7 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         if outcome.ok:
             level, message = DIAGNOSTIC_OK, "model identified"
             values.update(fit_percent=outcome.doc.get("fit_percent"), rms=outcome.doc.get("rms"))
-        elif outcome.status in ("filling", "not_exciting", "kept"):
+        elif outcome.status in ("filling", "not_exciting", "kept", "uncertain"):
             level, message = DIAGNOSTIC_WARN, outcome.reason
         else:
             level, message = DIAGNOSTIC_ERROR, outcome.reason

@@ -28,7 +28,7 @@ CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older tha
 STREAMS = ("excitation", "response")
 _FIELD_KINDS = {"sample_rate": float, "window": int, "forgetting": float, "tau_max": int, "method": str, "order": int,
                 "delay": int, "mu": int, "poly": int, "partition": tuple, "interpolation": str, "max_gap": float,
-                "min_fill": float, "min_excitation": float, "refine": bool}
+                "min_fill": float, "min_excitation": float, "refine": bool, "max_relative_sd": float}
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,7 @@ class EngineConfig:
     min_fill: float = 0.25  # fraction of the window needed before the first solve
     min_excitation: float = 0.1  # input std needed, relative to the windows behind the published models; 0 = off
     refine: bool = False  # refine each solve's estimate on the simulation error (identification.refinement)
+    max_relative_sd: float = 0.25  # pole sd / max(|p|, 1 - |p|), gain sd / |gain| above: uncertain; 0 = off
 
     def validated(self) -> EngineConfig:
         """self, or a UsageError naming the first invalid field and why."""
@@ -103,6 +104,8 @@ class EngineConfig:
             raise bad("min_fill", "must be in (0, 1]")
         if not 0.0 <= self.min_excitation <= 1.0:
             raise bad("min_excitation", "must be in [0, 1] (0 = off)")
+        if not (math.isfinite(self.max_relative_sd) and self.max_relative_sd >= 0):
+            raise bad("max_relative_sd", "must be >= 0 (0 = off)")
         return self
 
     def identify_options(self) -> IdentifyOptions:
@@ -133,6 +136,7 @@ class EngineStats:
     solve_errors: int = 0  # solves that gave no model, for any reason below or the window filling
     not_exciting: int = 0  # ... because the input was not persistently exciting
     kept_published: int = 0  # ... because the published model fits the window clearly better
+    uncertain: int = 0  # ... because the new model's bounds are wide (``engine.too_uncertain``)
     solve_failures: int = 0  # ... because the method failed on the data (e.g. an empty PLLS interval)
     solve_exceptions: int = 0  # ... because of an unexpected exception (logged; ingestion goes on)
     first_stamp: dict = field(default_factory=dict)  # stream -> first accepted stamp

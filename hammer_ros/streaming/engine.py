@@ -95,7 +95,7 @@ class SolveOutcome:
     solve_seconds: float
     samples: int
     stamp: float
-    status: str = "ok"  # ok | filling | not_exciting | kept | failed (the method rejected the data) | exception
+    status: str = "ok"  # ok | filling | not_exciting | kept | uncertain | failed (method rejected the data) | exception
     input_std: float = float("nan")  # of the window's input
     markov: tuple[float, ...] = ()  # the model's first 2n + 1 Markov parameters (ok outcomes)
 
@@ -222,6 +222,8 @@ def count_outcome(stats: EngineStats, outcome: SolveOutcome) -> None:
         stats.not_exciting += 1
     elif outcome.status == "kept":
         stats.kept_published += 1
+    elif outcome.status == "uncertain":
+        stats.uncertain += 1
     elif outcome.status == "failed":
         stats.solve_failures += 1
     elif outcome.status == "exception":
@@ -403,7 +405,33 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
         return outcome(False, f"{cfg.method}: non-finite model coefficients", status="failed")
     if kept:
         return outcome(False, f"kept the published model: it fits the window better ({kept})", status="kept")
+    wide = too_uncertain(result, cfg.max_relative_sd)
+    if wide:
+        return outcome(False, f"uncertain model: {wide}", status="uncertain")
     return outcome(True, "", result, estimate.doc, markov=_markov(result, estimate.doc) if document else ())
+
+
+def too_uncertain(result: IdentificationResult, max_relative_sd: float) -> str:
+    """'' or why the model's bounds are too wide to publish it (``max_relative_sd`` 0: never): a pole
+    whose 95 % interval of the modulus, |p| +- 1.96 sd(|p|), crosses the unit circle (sd(|p|) to first
+    order sqrt((re sd_re)^2 + (im sd_im)^2) / |p|), a pole's sd above ``max_relative_sd`` x the larger
+    of |p| and 1 - |p| (a fast pole near 0 is measured against the unit circle, not against its own
+    small modulus), or the gain's sd above ``max_relative_sd`` x |gain|. The last confident model
+    then stays, marked stale."""
+    bounds = result.uncertainty
+    if bounds is None or max_relative_sd <= 0:
+        return ""
+    for pole, (sd_re, sd_im) in zip(result.poles.tolist(), np.asarray(bounds.poles_std).tolist(), strict=True):
+        radius = abs(pole)
+        sd = math.hypot(pole.real * sd_re, pole.imag * sd_im) / radius if radius > 0 else math.hypot(sd_re, sd_im)
+        if not math.isfinite(sd) or (radius - 1.0) * (radius - 1.0) <= (1.96 * sd) ** 2:
+            return f"the 95 % interval of pole {pole:.4g} (|p| {radius:.4g} +- {1.96 * sd:.2g}) crosses the unit circle"
+        if math.hypot(sd_re, sd_im) > max_relative_sd * max(radius, 1.0 - radius):
+            return (f"pole {pole:.4g} has sd {math.hypot(sd_re, sd_im):.2g} > max_relative_sd {max_relative_sd:g} "
+                    f"x max(|p|, 1 - |p|)")
+    if bounds.gain_std is not None and result.gain is not None and bounds.gain_std > max_relative_sd * abs(result.gain):
+        return f"gain {result.gain:.4g} has sd {bounds.gain_std:.2g} > max_relative_sd {max_relative_sd:g} x |gain|"
+    return ""
 
 
 def document_outcome(outcome: SolveOutcome, v: np.ndarray, y: np.ndarray) -> SolveOutcome:
