@@ -61,7 +61,7 @@ from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, so
 from ..streaming.solver_process import SolverProcess, diagnose_window  # noqa: E402
 from .cdr import extract_batch, raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
-from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
+from .field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
     diagnostics_message,
@@ -177,6 +177,9 @@ def check_field(cls, path: FieldPath) -> None:
         if step.name not in names:
             known = f" (fields: {', '.join(names)})" if names else ""
             raise FieldError(f"field {path.text!r}: no field {step.name!r} in {type(value).__name__}{known}")
+        if step.element_name is not None and NAME_FIELD not in names:
+            raise FieldError(f"field {path.text!r}: [{step.element_name}] is looked up in a sibling "
+                             f"{NAME_FIELD!r} array, and {type(value).__name__} has none")
         value = getattr(value, step.name)
         if step.indices:
             return
