@@ -25,6 +25,7 @@ from .common import (
     load_data,
     options_from_args,
     positive_int,
+    with_reference,
 )
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
@@ -38,14 +39,16 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
     options = options_from_args(args)
     record = load_data(args.data, args)
+    options = with_reference(options, record)
     try:
         result = identify(args.method, record.v, record.y, options)
     except IdentificationError as exc:  # name the data the method could not identify from
         raise IdentificationError(f"{args.data}: {exc}") from None
     if args.refine:
+        from ..identification.instrumental import refinement_input
         from ..identification.refinement import refine_result
 
-        result = refine_result(result, record.v, record.y)
+        result = refine_result(result, refinement_input(record.v, record.r), record.y)
     doc = result.to_json(record.v, record.y)
     emit(doc, args.json, format_model(doc))
     return 0
@@ -78,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="batch identification of a record")
     p.add_argument("data", metavar="DATA", help="CSV, NPZ, .mcap or rosbag2 directory")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     p.add_argument("--refine", action="store_true",
                    help="refine the method's estimate on the simulation error (all its parts)")

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..identification.result import fit_percent, rms_error, strict_json
 from .chain import Chain, Step, extend_chain
+from .closed_loop import closed_loop_evidence
 from .evidence import (
     CauseTest,
     LineTest,
@@ -183,6 +184,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
             found_by = "a search of every extension (no significant signature led to a gain; the residual tests failed)"
     evidence = tuple(t.evidence() for t in correlation) + tuple(t.evidence for t in cause_tests)
     confidence = _confidence(cause, gains, evidence)
+    evidence += (closed_loop_evidence(split.v_val[val_skip:], e_val[val_skip:]),)
     chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
     final = None if chain is None else chain.final
     extended_score = None if final is None else _score(final.structure, split.y_val, final.validation_output)

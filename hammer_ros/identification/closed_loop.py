@@ -57,7 +57,14 @@ def random_third_order_plant(rng: np.random.Generator) -> LinearModel:
 
 def _loop(r: np.ndarray, w: np.ndarray, nonlinearity: StaticMap, linear: LinearModel, kp: float,
           ki: float) -> tuple[np.ndarray, np.ndarray]:
-    """(u, x) of the loop of the module docstring, sample by sample (Python floats)."""
+    """(u, x) of the loop of the module docstring, sample by sample (Python floats); an unstable
+    loop gives non-finite values (no overflow warning)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _loop_samples(r, w, nonlinearity, linear, kp, ki)
+
+
+def _loop_samples(r: np.ndarray, w: np.ndarray, nonlinearity: StaticMap, linear: LinearModel, kp: float,
+                  ki: float) -> tuple[np.ndarray, np.ndarray]:
     b, a = linear.b.tolist(), linear.a.tolist()
     n = max(len(a), len(b))
     b, a = b + [0.0] * (n - len(b)), a + [0.0] * (n - len(a))
@@ -70,8 +77,8 @@ def _loop(r: np.ndarray, w: np.ndarray, nonlinearity: StaticMap, linear: LinearM
         error = rk - (xk + wk)
         integral += error
         uk = kp * error + ki * integral
-        f_past = [float(nonlinearity(np.array([uk]))[0])] + f_past[:-1]
-        x_past = [xk] + x_past[:-1]
+        f_past = [float(nonlinearity(np.array([uk]))[0]), *f_past[:-1]]
+        x_past = [xk, *x_past[:-1]]
         u[k], x[k] = uk, xk
     return u, x
 

@@ -17,7 +17,8 @@ built from the reference, the noise-free signals simulated through a first estim
   from u_r, the part of u the reference explains (``reference_part``: the least-squares
   projection of u on r(k), ..., r(k - REFERENCE_LAGS), the first stage of the two-stage method),
   the output lags from y_r, the output of the first IV estimate simulated on u_r (refined IV,
-  Laurain et al. sec. 4; the first pass uses the projection of y on r).
+  Laurain et al. sec. 4; the first pass uses the projection of y on r);
+* the simulation-error refinement (``--refine``) runs on u_r (``refinement_input``).
 
 Any function of r is uncorrelated with w, so the IV estimate is consistent whatever the
 colour of w (also in open loop, where PLLS's equation error is coloured too).
@@ -54,6 +55,15 @@ def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_L
     padded = np.concatenate([np.zeros(lags), reference])
     columns = np.column_stack([np.ones(x.size), lagged_columns(padded, range(lags + 1), rows + lags)])
     return columns @ solve_least_squares(columns, x)
+
+
+def refinement_input(v: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+    """The input the simulation-error refinement runs on: v in open loop; with a reference,
+    v_r = ``reference_part(v, r)`` (the two-stage method, Forssell and Ljung 1999 sec. 6.2, Van
+    den Hof and Schrama 1993): y = G F~(v_r) + e with e uncorrelated with v_r, so the refined
+    linear block is consistent, and its map is F~(x) = E{F(v) | v_r = x}, F smoothed by the spread
+    of the noise part of v (the input part the reference does not explain)."""
+    return v if reference is None else reference_part(v, reference)
 
 
 def solve_instrumental(phi: np.ndarray, target: np.ndarray, instruments: np.ndarray) -> np.ndarray:

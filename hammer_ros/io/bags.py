@@ -660,15 +660,33 @@ def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSp
 
 
 def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec: str | None = None,
-                    config: str | Path | None = None) -> Record:
+                    config: str | Path | None = None, reference_spec: str | None = None) -> Record:
     """All aligned samples of a bag as a Record (the streaming engine's alignment, without the
     window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
     gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
-    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window)."""
+    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window).
+
+    ``reference_spec`` (``--reference /topic:field``, a closed loop's reference): aligned with
+    the excitation the same way, then read at the record's sample times (linear interpolation;
+    on the common grid these are its own samples)."""
     forget_warnings()
     params = load_msg_config(config) if config else {}
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
+    t, v, y = _aligned_samples(path, excitation, response, engine_config)
+    if reference_spec is None:
+        return Record(v, y, t, str(path))
+    reference = parse_stream_spec(reference_spec, "--reference")
+    try:
+        t_r, _, r = _aligned_samples(path, excitation, reference, engine_config)
+    except UsageError as exc:
+        raise UsageError(f"--reference: {exc}") from None
+    return Record(v, y, t, str(path), np.interp(t, t_r, r))
+
+
+def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
+                     engine_config: EngineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, v, y): every aligned sample of the two streams (``load_bag_record``)."""
     check_topics(path, (excitation, response))
     check_fields(path, (excitation, response))
     chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -690,7 +708,7 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     if stats.gaps:
         print(f"hammer-ros: {path}: {stats.gaps} gap(s) in the streams; segments concatenated", file=sys.stderr)
     t, v, y = (np.concatenate(parts) for parts in zip(*chunks))
-    return Record(v, y, t, str(path))
+    return t, v, y
 
 
 # ------------------------------------------------------------------------------- writing

@@ -52,6 +52,8 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
 
+from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST  # noqa: E402
+from ..diagnosis.closed_loop import WARNING as CLOSED_LOOP_WARNING  # noqa: E402
 from ..errors import UsageError  # noqa: E402
 from ..identification.methods import METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
@@ -362,6 +364,7 @@ class IdentificationCore:
         self.inputs = {s: _Input(s) for s in STREAMS}
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
+        self.closed_loop: bool | None = None  # the last diagnosis's ``closed_loop`` verdict (None: none yet)
         self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
         self._cpu_mark = (time.monotonic(), time.process_time())  # ``_cpu_percent``'s last reading
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -730,6 +733,8 @@ class IdentificationCore:
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
         doc |= self._diagnosis(v, y)
         doc["seconds"] = time.perf_counter() - started
+        rows = [e for e in doc.get("evidence", ()) if e.get("test") == CLOSED_LOOP_TEST]
+        self.closed_loop = (not rows[0]["passed"]) if rows else None
         values = {"data": json.dumps(strict_json(doc), allow_nan=False)}
         self._send([("~/diagnosis", DIAGNOSIS_TYPE, values)], self._now(), publish=self.active)
         return doc
@@ -828,6 +833,11 @@ class IdentificationCore:
         if self.server is not None:
             values.update(self.server.diagnostics(), foxglove_port=self.server.port)
         status["values"].extend({"key": k, "value": str(v)} for k, v in values.items())
+        if self.closed_loop is not None:
+            status["values"].append({"key": "closed_loop", "value": str(self.closed_loop).lower()})
+        if self.closed_loop:
+            status["level"] = max(status["level"], 1)
+            status["message"] = f"{status['message']}; {CLOSED_LOOP_WARNING}"
         errors = [s.last_error for s in self.inputs.values() if s.field_errors]
         errors += [s.wrong_type for s in self.inputs.values() if s.wrong_type]
         if errors and status["level"] < 2:
