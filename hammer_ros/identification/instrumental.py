@@ -46,15 +46,21 @@ def check_reference(reference: np.ndarray | None, length: int) -> np.ndarray | N
     return reference
 
 
-def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_LAGS) -> np.ndarray:
-    """x_r(k) = c + sum_{i=0}^{lags} s_i r(k - i), the least-squares projection of x on the
-    present and past reference (the first stage of the two-stage method, Forssell and Ljung
-    1999 sec. 6.2): the part of x the reference explains, uncorrelated with the noise."""
+def causal_projection(x: np.ndarray, signal: np.ndarray, lags: int) -> np.ndarray:
+    """c + sum_{i=0}^{lags} s_i signal(k - i): the least-squares projection of x on the present
+    and past of ``signal`` (zero before the record)."""
     x = np.asarray(x, dtype=float)
     rows = np.arange(x.size)
-    padded = np.concatenate([np.zeros(lags), reference])
+    padded = np.concatenate([np.zeros(lags), np.asarray(signal, dtype=float)])
     columns = np.column_stack([np.ones(x.size), lagged_columns(padded, range(lags + 1), rows + lags)])
     return columns @ solve_least_squares(columns, x)
+
+
+def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_LAGS) -> np.ndarray:
+    """x_r, the ``causal_projection`` of x on the reference: the part of x the present and past
+    reference explain, uncorrelated with the noise (the first stage of the two-stage method,
+    Forssell and Ljung 1999 sec. 6.2)."""
+    return causal_projection(x, reference, lags)
 
 
 def refinement_input(v: np.ndarray, reference: np.ndarray | None) -> np.ndarray:

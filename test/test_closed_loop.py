@@ -1,0 +1,125 @@
+"""Closed-loop data (``identification.closed_loop`` records, a P or PI controller around a
+third-order Hammerstein plant with a cubic map, coloured output noise at 4-8 dB): the plain
+CLS and PLLS estimates are biased, the ones instrumented by the reference are not (against the
+true poles); the ``closed_loop`` evidence row fails on closed-loop data and passes in open loop;
+``identify --reference`` reads the reference from a CSV/NPZ column or a bag topic."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hammer_ros.cli import main
+from hammer_ros.diagnosis.closed_loop import closed_loop_evidence
+from hammer_ros.identification.closed_loop import random_loop_pair
+from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.identification.methods import IdentifyOptions, identify
+
+SEEDS = range(100, 106)
+SAMPLES = 3000
+
+
+@pytest.fixture(scope="module", params=[False, True], ids=["P", "PI"])
+def loops(request):
+    return [random_loop_pair(seed, samples=SAMPLES, integral=request.param) for seed in SEEDS]
+
+
+def pole_error(record, method: str, reference=None) -> float:
+    result = identify(method, record.u, record.y, IdentifyOptions(order=3, delay=1, reference=reference))
+    return root_rss_error(record.linear.poles, result.poles)
+
+
+def test_the_controller_feeds_the_noise_back_into_the_input(loops):
+    for closed, opened in loops:
+        assert abs(closed.snr_db - opened.snr_db) < 1e-12 and 4.0 <= closed.snr_db <= 8.0
+        n = SAMPLES
+        noise_closed, noise_open = closed.y - closed.x, opened.y - opened.x
+        assert abs(np.corrcoef(closed.u, noise_closed)[0, 1]) > 5 / np.sqrt(n)
+        assert abs(np.corrcoef(opened.u, noise_open)[0, 1]) < 4 / np.sqrt(n)
+        assert abs(np.std(closed.u) / np.std(opened.u) - 1.0) < 0.1
+
+
+@pytest.mark.parametrize(("method", "biased", "instrumented"), [("cls-markov", 0.15, 0.05),
+                                                                  ("plls-hammerstein", 0.25, 0.07)])
+def test_the_reference_as_instrument_removes_the_closed_loop_bias(loops, method, biased, instrumented):
+    plain = np.median([pole_error(closed, method) for closed, _ in loops])
+    with_reference = np.median([pole_error(closed, method, closed.r) for closed, _ in loops])
+    assert plain > biased and with_reference < instrumented, (plain, with_reference)
+
+
+def test_the_closed_loop_row_fails_in_closed_loop_and_passes_in_open_loop(loops):
+    verdicts = {"closed": [], "open": []}
+    for closed, opened in loops:
+        for name, record in (("closed", closed), ("open", opened)):
+            model = identify("cls-markov", record.u, record.y, IdentifyOptions(order=3, delay=1))
+            validation = slice(int(0.7 * SAMPLES), None)
+            residual = record.y[validation] - model.simulate(record.u)[validation]
+            evidence = closed_loop_evidence(record.u[validation], residual)
+            assert evidence.test == "closed_loop" and evidence.bound > 0
+            verdicts[name].append(evidence.passed)
+    assert not any(verdicts["closed"]) and sum(verdicts["open"]) >= len(SEEDS) - 1, verdicts
+
+
+@pytest.fixture(scope="module")
+def loop_files(tmp_path_factory):
+    """One closed-loop record as NPZ (u, y, r) and as an MCAP bag (/cmd, /ref, /position)."""
+    from hammer_ros.io.bags import ResultWriter
+
+    closed, opened = random_loop_pair(104, samples=SAMPLES)
+    root = tmp_path_factory.mktemp("loop")
+    np.savez(root / "closed.npz", u=closed.u, y=closed.y, r=closed.r)
+    np.savez(root / "open.npz", u=opened.u, y=opened.y)
+    with ResultWriter(root / "closed.mcap") as out:
+        for k in range(SAMPLES):
+            t = 1_700_000_000_000_000_000 + k * 10_000_000
+            for topic, x in (("/cmd", closed.u), ("/ref", closed.r), ("/position", closed.y)):
+                out.write(topic, "std_msgs/msg/Float64", {"data": float(x[k])}, t)
+    return root, closed
+
+
+def run_json(capsys, *argv) -> dict:
+    assert main(list(argv)) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_identify_reference_from_a_column_or_a_topic(loop_files, capsys):
+    root, closed = loop_files
+    column = run_json(capsys, "identify", str(root / "closed.npz"), "--reference", "r", "--order", "3", "--json")
+    topic = run_json(capsys, "identify", str(root / "closed.mcap"), "--input", "/cmd:data", "--output",
+                     "/position:data", "--reference", "/ref:data", "--order", "3", "--json")
+    plain = run_json(capsys, "identify", str(root / "closed.npz"), "--order", "3", "--json")
+    refined = run_json(capsys, "identify", str(root / "closed.npz"), "--reference", "r", "--order", "3", "--refine",
+                       "--json")
+    poles = {name: np.array([complex(*p) for p in doc["poles"]])
+             for name, doc in (("column", column), ("topic", topic), ("plain", plain), ("refined", refined))}
+    assert root_rss_error(poles["column"], poles["topic"]) < 1e-6
+    truth = closed.linear.poles
+    assert root_rss_error(truth, poles["column"]) < 0.05 < root_rss_error(truth, poles["plain"])
+    assert root_rss_error(truth, poles["refined"]) < 0.05
+
+
+@pytest.mark.parametrize(("argv", "reason"), [
+    (["closed.npz", "--reference", "rr"], "closed.npz: no column 'rr' (set --reference; columns are u, y, r)"),
+    (["closed.npz", "--reference", "r", "--method", "nls-arx"], "--reference: not for nls-arx"),
+    (["closed.mcap", "--input", "/cmd:data", "--output", "/position:data", "--reference", "/setpoint:data"],
+     "--reference: "),
+    (["open.npz", "--reference", "u", "--method", "plls-feedback"], "--reference: not for plls-feedback"),
+])
+def test_a_bad_reference_exits_2_with_one_line_naming_it(loop_files, capsys, argv, reason):
+    root, _ = loop_files
+    assert main(["identify", str(root / argv[0]), *argv[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert reason in err and "\n" not in err, err
+
+
+def test_diagnose_says_closed_loop(loop_files, capsys):
+    root, _ = loop_files
+    rows = {}
+    for name in ("closed", "open"):
+        doc = run_json(capsys, "diagnose", str(root / f"{name}.npz"), "--order", "3", "--json")
+        rows[name] = [e for e in doc["evidence"] if e["test"] == "closed_loop"]
+    assert len(rows["closed"]) == len(rows["open"]) == 1
+    assert rows["closed"][0]["passed"] is False and rows["open"][0]["passed"] is True
+    assert rows["closed"][0]["value"] > rows["closed"][0]["bound"]
