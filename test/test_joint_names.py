@@ -129,3 +129,80 @@ def test_the_node_reads_a_named_element_from_the_serialized_message():
     check_field(JointState, path)
     with pytest.raises(UsageError, match=r"^field 'data\[elbow_joint\]': \[elbow_joint\] is looked up in a sibling"):
         check_field(Float64MultiArray, parse_field_path("data[elbow_joint]"))
+
+
+ARM_CONFIG = """\
+hammer_ros:
+  ros__parameters:
+    excitation_topic: /arm_cmd
+    excitation_type: std_msgs/msg/Float64MultiArray
+    response_topic: /joint_states
+    response_type: sensor_msgs/msg/JointState
+    order: 2
+    window: 3000
+    channels: [shoulder, elbow, wrist]
+    shoulder: {excitation_field: "data[0]", response_field: "velocity[shoulder_pan_joint]"}
+    elbow: {excitation_field: "data[1]", response_field: "velocity[elbow_joint]", method: plls-hammerstein}
+    wrist: {excitation_field: "data[2]", response_field: "velocity[wrist_1_joint]"}
+"""
+
+
+def test_three_channels_over_one_joint_state_replay_to_each_joints_model(arm_bags, capsys, tmp_path):
+    """One pass over the shuffled bag, the two topics shared by three channels: each channel's
+    model is the single-channel replay's, and the right joint's."""
+    _, shuffled, _ = arm_bags
+    config = tmp_path / "arm.yaml"
+    config.write_text(ARM_CONFIG)
+    assert main(["replay", str(shuffled), "--config", str(config), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert set(doc["channels"]) == {"shoulder", "elbow", "wrist"}
+    assert doc["samples"] == sum(c["samples"] for c in doc["channels"].values()) and doc["wall_s"] > 0
+    assert doc["channels"]["elbow"]["method"] == "plls-hammerstein"
+    for channel, joint, index in (("shoulder", "shoulder_pan_joint", 0), ("elbow", "elbow_joint", 1),
+                                  ("wrist", "wrist_1_joint", 2)):
+        found = np.array([complex(*p) for p in doc["channels"][channel]["poles"]])
+        assert root_rss_error(PLANTS[joint].poles, found) < 0.05, channel  # the pair 0.7 +- 0.1j: 0.04
+        method = ["--method", "plls-hammerstein"] if channel == "elbow" else []
+        assert main(["replay", str(shuffled), "--input", f"/arm_cmd:data[{index}]", "--output",
+                     f"/joint_states:velocity[{joint}]", "--order", "2", "--window", "3000", *method, "--json"]) == 0
+        single = json.loads(capsys.readouterr().out)
+        assert single["poles"] == doc["channels"][channel]["poles"]
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    ("channels: [shoulder, elbow, shoulder]", "channels: duplicate channel 'shoulder'"),
+    ("channels: [shoulder, 2nd]", "channels[1]: name '2nd' must be a name like"),
+    ("channels: [shoulder, elbow]", "wrist: parameters of a channel 'wrist' that is not in channels (shoulder, elbow)"),
+    ("channels: [shoulder, {name: elbow}]", "channels: expected a list of channel names"),
+    ("channels: [shoulder, elbow, wrist]\n    wrist: {excitation_field: \"data[2]\", response_field: \"velocity[a]\", "
+     "ordr: 2}", "channel 'wrist': unknown parameter 'ordr'"),
+])
+def test_bad_channel_lists_exit_2_naming_the_channel(arm_bags, capsys, tmp_path, change, reason):
+    _, shuffled, _ = arm_bags
+    text = ARM_CONFIG.replace("    channels: [shoulder, elbow, wrist]\n", f"    {change}\n")
+    if "ordr" in change:
+        text = text.replace('    wrist: {excitation_field: "data[2]", response_field: "velocity[wrist_1_joint]"}\n', "")
+    config = tmp_path / "bad.yaml"
+    config.write_text(text)
+    assert main(["replay", str(shuffled), "--config", str(config), "--json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert reason in err and "\n" not in err, err
+
+
+def test_identify_reads_one_channel(arm_bags, capsys, tmp_path):
+    _, shuffled, _ = arm_bags
+    config = tmp_path / "arm.yaml"
+    config.write_text(ARM_CONFIG)
+    assert main(["identify", str(shuffled), "--config", str(config)]) == 2
+    assert "has 3 channels (shoulder, elbow, wrist); identify and diagnose read one pair" in capsys.readouterr().err
+    others = ("    shoulder:", "    wrist:")
+    lines = [line for line in ARM_CONFIG.splitlines(keepends=True) if not line.startswith(others)]
+    config.write_text("".join(lines).replace("channels: [shoulder, elbow, wrist]", "channels: [elbow]"))
+    one = run_json(capsys, "replay", str(shuffled), "--config", str(config), "--json")
+    assert "channels" not in one and one["method"] == "plls-hammerstein"  # one channel: today's JSON
+    assert run_json(capsys, "identify", str(shuffled), "--config", str(config), "--json")["method"] == "cls-markov"
+
+
+def run_json(capsys, *argv) -> dict:
+    assert main(list(argv)) == 0
+    return json.loads(capsys.readouterr().out)

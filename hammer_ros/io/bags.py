@@ -20,6 +20,7 @@ import contextlib
 import functools
 import io
 import json
+import re
 import struct
 import sys
 import zlib
@@ -43,7 +44,7 @@ SCHEMA_SEPARATOR = "=" * 80
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
               "response_field")
 OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap", "foxglove_port",
-              "foxglove_host")
+              "foxglove_host", "channels")
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
 
 
@@ -137,6 +138,69 @@ def stream_specs(input_spec: str | None, output_spec: str | None, params: dict[s
         except UsageError as exc:
             raise UsageError(f"{source}: {role}_field: {exc}") from None
     return specs[0], specs[1]
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One (excitation, response) pair of a ``channels`` list: its name, streams and parameters
+    (the file's top-level parameters with the channel's own overrides)."""
+
+    name: str
+    excitation: StreamSpec
+    response: StreamSpec
+    params: dict
+
+
+_CHANNEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def config_channels(params: dict[str, Any], source: str = "config") -> list[Channel]:
+    """The channels of a msg_config / params file, [] without a ``channels`` list. Two forms:
+    ``channels: [shoulder, elbow]`` with each channel's parameters under its name
+    (``shoulder: {response_field: "velocity[shoulder_joint]", order: 2}``: the form a ROS 2
+    params file can hold, nested names becoming ``shoulder.response_field``), or a list of
+    mappings each with a ``name``. The top-level parameters are every channel's defaults. A
+    name that is not a ROS name token, a duplicate, or a bad parameter is a UsageError naming
+    the file and the channel."""
+    listed = params.get("channels")
+    if listed is None or listed == []:
+        return []
+    if not isinstance(listed, list) or not (all(isinstance(c, str) for c in listed)
+                                            or all(isinstance(c, dict) for c in listed)):
+        raise UsageError(f"{source}: channels: expected a list of channel names (each with its parameters under "
+                         "its name) or a list of mappings with a name")
+    names = [c if isinstance(c, str) else c.get("name") for c in listed]
+    for index, name in enumerate(names):
+        if not isinstance(name, str) or not _CHANNEL_NAME.match(name):
+            raise UsageError(f"{source}: channels[{index}]: name {name!r} must be a name like shoulder_pan "
+                             "(letters, digits, _; a letter first)")
+        if name in names[:index]:
+            raise UsageError(f"{source}: channels: duplicate channel {name!r}")
+    stray = next((k for k, v in params.items() if isinstance(v, dict) and k not in names), None)
+    if stray is not None:
+        raise UsageError(f"{source}: {stray}: parameters of a channel {stray!r} that is not in channels "
+                         f"({', '.join(names)})")
+    entries = [{"name": c, **_channel_section(params, c, source)} if isinstance(c, str) else c for c in listed]
+    named = {c for c in listed if isinstance(c, str)}
+    base = {k: v for k, v in params.items() if k != "channels" and str(k).split(".", 1)[0] not in named}
+    channels: list[Channel] = []
+    for entry in entries:
+        name = entry["name"]
+        merged = {**base, **{k: v for k, v in entry.items() if k != "name"}}
+        where = f"{source}: channel {name!r}"
+        engine_config_from_params(merged, where)  # unknown or bad parameters, named
+        excitation, response = stream_specs(None, None, merged, where)
+        channels.append(Channel(name, excitation, response, merged))
+    return channels
+
+
+def _channel_section(params: dict[str, Any], name: str, source: str) -> dict[str, Any]:
+    """The parameters under a channel's name (nested, or ``name.key`` flattened); {} for none."""
+    section = params.get(name, {})
+    if not isinstance(section, dict):
+        raise UsageError(f"{source}: {name}: the parameters of channel {name!r} must be a mapping")
+    dotted = {k.split(".", 1)[1]: v for k, v in params.items() if isinstance(k, str) and k.startswith(f"{name}.")}
+    return {**section, **dotted}
 
 
 # ------------------------------------------------------------------------------- reading
@@ -582,7 +646,7 @@ def check_fields(path: str | Path, specs: tuple[StreamSpec, ...]) -> None:
 class BagSample:
     """The samples one message contributes to a stream."""
 
-    stream: str  # "excitation" or "response"
+    stream: Any  # "excitation" or "response" (or the role given to ``iter_role_samples``)
     stamp: float  # header stamp or log time (s): the time of the LAST sample
     values: np.ndarray | float  # a float: one sample
     log_time: int  # ns
@@ -599,10 +663,18 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
     ``ros2msg`` schema (``cdr.schema_extractor``: no message is built, ~10x less time per
     100-double message than decoding it); a message it cannot read (or a schema it cannot parse)
     is decoded in full, which names what is wrong exactly as before."""
-    stats = stats if stats is not None else BagReadStats()
     check_topics(path, (excitation, response))
-    roles: dict[str, list[tuple[str, StreamSpec]]] = {}
-    for role, spec in (("excitation", excitation), ("response", response)):
+    yield from iter_role_samples(path, [("excitation", excitation), ("response", response)], stats)
+
+
+def iter_role_samples(path: str | Path, specs: list[tuple[Any, StreamSpec]],
+                      stats: BagReadStats | None = None) -> Iterator[BagSample]:
+    """``iter_bag_samples`` for any number of (role, spec) pairs (the roles of several channels:
+    ``BagSample.stream`` is the role): each topic is read once per message, and every spec on
+    it is read from that one message."""
+    stats = stats if stats is not None else BagReadStats()
+    roles: dict[str, list[tuple[Any, StreamSpec]]] = {}
+    for role, spec in specs:
         roles.setdefault(spec.topic, []).append((role, spec))
     readers: dict[tuple[str, int], list | None] = {}
 
@@ -671,6 +743,11 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     on the common grid these are its own samples)."""
     forget_warnings()
     params = load_msg_config(config) if config else {}
+    channels = config_channels(params, str(config))
+    if len(channels) > 1:
+        raise UsageError(f"--config: {config} has {len(channels)} channels ({', '.join(c.name for c in channels)}); "
+                         "identify and diagnose read one pair (--input/--output, or replay for every channel)")
+    params = channels[0].params if channels else params
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
     t, v, y = _aligned_samples(path, excitation, response, engine_config)

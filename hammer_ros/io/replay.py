@@ -47,6 +47,7 @@ from .bags import (
     check_fields,
     check_topics,
     iter_bag_samples,
+    iter_role_samples,
 )
 
 NODE_NAME = "hammer_ros"
@@ -226,3 +227,86 @@ def bag_values(read: BagReadStats) -> list[dict]:
     values = {"bag_damage": len(read.damage), "bag_oversized_messages": read.oversized,
               "bag_undecodable_messages": read.undecodable, "bag_field_errors": sum(read.field_errors.values())}
     return [{"key": k, "value": str(v)} for k, v in values.items()]
+
+
+@dataclass(frozen=True)
+class ChannelReplay:
+    """One channel of ``replay_channels``: its name, streams, engine config and solve rate."""
+
+    name: str
+    excitation: StreamSpec
+    response: StreamSpec
+    config: EngineConfig
+    solve_rate: float
+
+
+def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id: str = "",
+                    out: str | Path | None = None, node_name: str = NODE_NAME,
+                    progress: Callable[[int, int, int, bool], None] | None = None) -> dict[str, ReplayResult]:
+    """Several channels of one bag in one pass (every channel checked by ``check_replay_input``):
+    each topic is read once per message and its samples go to the engine of every channel that
+    uses them (``iter_role_samples``); each channel solves every 1 / its solve_rate seconds of
+    bag time and at the end, in process. ``out``: the results of channel NAME under
+    ``/<node_name>/NAME/...`` and its status in /diagnostics (hardware_id ``<node_name>/NAME``).
+    Returns each channel's ReplayResult (``document()`` = its ``replay --json``)."""
+    topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
+    total = sum(bag_message_counts(bag).get(topic, 0) for topic in topics)
+    read = BagReadStats()
+    engines = [StreamingEngine(c.config) for c in channels]
+    outcomes: list[list[SolveOutcome | None]] = [[None, None] for _ in channels]  # (last good, last)
+    next_solve: list[float | None] = [None] * len(channels)
+    writer = ResultWriter(out) if out else None
+    started = time.perf_counter()
+    done, bag_start, bag_time = 0, None, float("nan")
+
+    def solve(index: int, bag_time: float) -> None:
+        engine = engines[index]
+        engine.flush()
+        outcome = engine.solve()
+        last_ok = outcome if outcome.ok else outcomes[index][0]
+        outcomes[index] = [last_ok, outcome]
+        if writer is None:
+            return
+        stamp = next((s for s in (outcome.stamp, bag_time) if math.isfinite(s)), 0.0)
+        name = f"{node_name}/{channels[index].name}"
+        messages = result_messages(outcome, stamp, frame_id)
+        if not outcome.ok and last_ok is not None:
+            messages.append(stale_model_message(last_ok, outcome))
+        diagnostics = diagnostics_message(engine.stats, outcome, stamp, name)
+        diagnostics["status"][0]["values"].extend(bag_values(read))
+        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+        record_results(writer, messages, stamp, name)
+
+    roles = [((i, stream), spec) for i, c in enumerate(channels)
+             for stream, spec in (("excitation", c.excitation), ("response", c.response))]
+    try:
+        for sample in iter_role_samples(bag, roles, read):
+            index, stream = sample.stream
+            if bag_start is None:
+                bag_start = sample.stamp
+                next_solve = [sample.stamp + 1.0 / c.solve_rate for c in channels]
+            for i, due in enumerate(next_solve):
+                if sample.stamp >= due:
+                    solve(i, sample.stamp)
+                    rate = channels[i].solve_rate
+                    next_solve[i] = due + math.ceil((sample.stamp - due) * rate + 1e-9) / rate
+            engine = engines[index]
+            engine.add_message(stream, sample.stamp, sample.values, flush=False)
+            if engine.buffered >= FLUSH_SAMPLES:
+                engine.flush()
+            bag_time = sample.stamp
+            done += 1
+            if progress:
+                progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)
+        for i in range(len(channels)):
+            solve(i, bag_time)
+        if progress:
+            progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), True)
+    finally:
+        if writer:
+            writer.close()
+    wall = time.perf_counter() - started
+    first = float(bag_start) if bag_start is not None else float("nan")
+    return {c.name: ReplayResult(str(bag), outcomes[i][0], outcomes[i][1], engines[i].stats, read, done, total,
+                                 wall, writer.count if writer else 0, first, bag_time)
+            for i, c in enumerate(channels)}
