@@ -206,3 +206,32 @@ def test_identify_reads_one_channel(arm_bags, capsys, tmp_path):
 def run_json(capsys, *argv) -> dict:
     assert main(list(argv)) == 0
     return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.ros
+def test_the_live_node_reads_joints_by_name_and_counts_a_missing_one(ros_env, tmp_path):
+    """The demo plant's JointState (name ["joint"]): ``position[joint]`` is read in every
+    message, ``position[elbow_joint]`` is in none of them: counted and named in /diagnostics,
+    never read from another joint, and the node keeps running."""
+    import signal
+
+    from ros_helpers import Listener, RosProcess
+
+    plant = RosProcess("hammer_ros.ros.plant_node", {"rate": 200.0, "message_type": "joint_state"}, ros_env,
+                       tmp_path / "plant.log")
+    node = RosProcess("hammer_ros.ros.node", {
+        "excitation_type": "sensor_msgs/msg/JointState", "excitation_field": "position[joint]",
+        "response_type": "sensor_msgs/msg/JointState", "response_field": "position[elbow_joint]", "solve_rate": 5.0},
+        ros_env, tmp_path / "node.log")
+    listener = Listener(ros_env)
+    try:
+        diagnostics = listener.subscribe_diagnostics()
+        status = listener.wait_for(lambda: [d for d in diagnostics if int(d["response_field_errors"]) > 0],
+                                   what="diagnostics counting the missing joint")[-1]
+        assert status["level"] == 1 and "no 'elbow_joint' in this message's name (joint)" in status["message"]
+        assert int(status["excitation_field_errors"]) == 0 and int(status["received_excitation"]) > 0
+        assert int(status["received_response"]) == 0 and node.process.poll() is None
+    finally:
+        listener.close()
+        codes = (node.stop(signal.SIGINT), plant.stop(signal.SIGINT))
+    assert codes == (0, 0), node.output()[-2000:]
