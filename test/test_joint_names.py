@@ -153,9 +153,15 @@ def test_three_channels_over_one_joint_state_replay_to_each_joints_model(arm_bag
     _, shuffled, _ = arm_bags
     config = tmp_path / "arm.yaml"
     config.write_text(ARM_CONFIG)
-    assert main(["replay", str(shuffled), "--config", str(config), "--json"]) == 0
+    out = tmp_path / "arm.mcap"
+    assert main(["replay", str(shuffled), "--config", str(config), "--out", str(out), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert set(doc["channels"]) == {"shoulder", "elbow", "wrist"}
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([out]) as reader:
+        topics = {c.topic for c in reader.connections}
+    assert {f"/hammer_ros/{name}/{what}" for name in doc["channels"] for what in ("model", "poles")} <= topics
     assert doc["samples"] == sum(c["samples"] for c in doc["channels"].values()) and doc["wall_s"] > 0
     assert doc["channels"]["elbow"]["method"] == "plls-hammerstein"
     for channel, joint, index in (("shoulder", "shoulder_pan_joint", 0), ("elbow", "elbow_joint", 1),
@@ -195,6 +201,8 @@ def test_identify_reads_one_channel(arm_bags, capsys, tmp_path):
     config.write_text(ARM_CONFIG)
     assert main(["identify", str(shuffled), "--config", str(config)]) == 2
     assert "has 3 channels (shoulder, elbow, wrist); identify and diagnose read one pair" in capsys.readouterr().err
+    assert main(["fleet", str(shuffled), "--config", str(config), "--workers", "1"]) == 2
+    assert "has 3 channels (shoulder, elbow, wrist); fleet replays one channel" in capsys.readouterr().err
     others = ("    shoulder:", "    wrist:")
     lines = [line for line in ARM_CONFIG.splitlines(keepends=True) if not line.startswith(others)]
     config.write_text("".join(lines).replace("channels: [shoulder, elbow, wrist]", "channels: [elbow]"))

@@ -26,7 +26,13 @@ PARQUET, HTML, MCAP_DIR = "fleet.parquet", "fleet.html", "mcap"
 def run(args: argparse.Namespace) -> int:
     from ..fleet.runner import FleetProgress, connect, run_fleet
     from ..fleet.table import read_rows, write_parquet
-    from ..io.bags import engine_config_from_params, forget_warnings, load_msg_config, stream_specs
+    from ..io.bags import (
+        engine_config_from_params,
+        forget_warnings,
+        load_msg_config,
+        single_channel_params,
+        stream_specs,
+    )
     from .replay import SignalStop, replay_settings
 
     forget_warnings()
@@ -40,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("BAGS and --manifest: give one")
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
+    params = single_channel_params(params, source, "fleet replays one channel per bag (not several yet)")
     excitation, response = stream_specs(args.input, args.output, params, source)
     engine_config_from_params(params, source)
     config, solve_rate = replay_settings(args, params, source)

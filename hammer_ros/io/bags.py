@@ -194,6 +194,16 @@ def config_channels(params: dict[str, Any], source: str = "config") -> list[Chan
     return channels
 
 
+def single_channel_params(params: dict[str, Any], source: str, why: str) -> dict[str, Any]:
+    """``params`` of a file without channels, the parameters of its only channel, or a UsageError
+    (naming the file, its channels and ``why``) for several."""
+    channels = config_channels(params, source)
+    if len(channels) > 1:
+        raise UsageError(f"--config: {source} has {len(channels)} channels ({', '.join(c.name for c in channels)}); "
+                         f"{why}")
+    return channels[0].params if channels else params
+
+
 def _channel_section(params: dict[str, Any], name: str, source: str) -> dict[str, Any]:
     """The parameters under a channel's name (nested, or ``name.key`` flattened); {} for none."""
     section = params.get(name, {})
@@ -743,11 +753,8 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     on the common grid these are its own samples)."""
     forget_warnings()
     params = load_msg_config(config) if config else {}
-    channels = config_channels(params, str(config))
-    if len(channels) > 1:
-        raise UsageError(f"--config: {config} has {len(channels)} channels ({', '.join(c.name for c in channels)}); "
-                         "identify and diagnose read one pair (--input/--output, or replay for every channel)")
-    params = channels[0].params if channels else params
+    params = single_channel_params(params, str(config), "identify and diagnose read one pair (--input/--output, "
+                                   "or replay for every channel)")
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
     t, v, y = _aligned_samples(path, excitation, response, engine_config)
