@@ -227,7 +227,7 @@ def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict
         check_replay_input(args.bag, channel.excitation, channel.response, args.out)
         runs.append(ChannelReplay(channel.name, channel.excitation, channel.response, config, solve_rate))
     topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
-    progress = Progress(len(channels) * sum(bag_message_counts(args.bag).get(t, 0) for t in topics))
+    progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in topics))
     try:
         results = replay_channels(args.bag, runs, frame_id=str(params.get("frame_id", "")), out=args.out,
                                   progress=progress.update)

@@ -90,6 +90,8 @@ def closed_loop_record(linear: LinearModel, nonlinearity: StaticMap, samples: in
     ``reference_std`` and coloured noise H(q) e scaled so that var(x) / var(w) is ``snr_db``
     (with x the output of the loop without noise: the reference's share of the output; the
     noise fed back through the controller adds to x)."""
+    if linear.b[0] != 0.0:
+        raise ValueError("the plant of a loop must be strictly proper (b_0 = 0): u(k) is computed from y(k)")
     rng = np.random.default_rng(seed)
     total = samples + PREROLL
     r = reference_std * rng.standard_normal(total)

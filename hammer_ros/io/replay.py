@@ -279,6 +279,10 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
 
     roles = [((i, stream), spec) for i, c in enumerate(channels)
              for stream, spec in (("excitation", c.excitation), ("response", c.response))]
+    first_role: dict[str, tuple] = {}  # a message yields one sample per role on its topic: count its first
+    for role, spec in roles:
+        first_role.setdefault(spec.topic, role)
+    firsts = set(first_role.values())
     try:
         for sample in iter_role_samples(bag, roles, read):
             index, stream = sample.stream
@@ -295,7 +299,7 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
             if engine.buffered >= FLUSH_SAMPLES:
                 engine.flush()
             bag_time = sample.stamp
-            done += 1
+            done += sample.stream in firsts
             if progress:
                 progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)
         for i in range(len(channels)):
