@@ -674,7 +674,7 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
     100-double message than decoding it); a message it cannot read (or a schema it cannot parse)
     is decoded in full, which names what is wrong exactly as before."""
     check_topics(path, (excitation, response))
-    yield from iter_role_samples(path, [("excitation", excitation), ("response", response)], stats)
+    return iter_role_samples(path, [("excitation", excitation), ("response", response)], stats)
 
 
 def iter_role_samples(path: str | Path, specs: list[tuple[Any, StreamSpec]],
