@@ -100,6 +100,25 @@ def test_identify_reference_from_a_column_or_a_topic(loop_files, capsys):
     assert root_rss_error(truth, poles["refined"]) < 0.05
 
 
+@pytest.mark.parametrize("method", ["cls-markov", "plls-hammerstein"])
+def test_replay_with_the_reference_equals_identify(loop_files, capsys, method):
+    """The streaming engine holds the reference on its grid; a window of the whole bag gives the
+    batch estimate exactly (no published model is kept over it: the free-run fit on a closed
+    loop's input says nothing), and the reference removes the bias there too."""
+    root, closed = loop_files
+    common = ["--input", "/cmd:data", "--output", "/position:data", "--order", "3", "--method", method]
+    bag = str(root / "closed.mcap")
+    batch = run_json(capsys, "identify", bag, *common, "--reference", "/ref:data", "--json")
+    streamed = run_json(capsys, "replay", bag, *common, "--reference", "/ref:data", "--window", str(SAMPLES), "--json")
+    plain = run_json(capsys, "replay", bag, *common, "--window", str(SAMPLES), "--json")
+    poles = {name: np.array([complex(*p) for p in doc["poles"]])
+             for name, doc in (("batch", batch), ("streamed", streamed), ("plain", plain))}
+    assert streamed["samples"] == SAMPLES and streamed["solves"] > 10
+    assert root_rss_error(poles["batch"], poles["streamed"]) < 1e-9
+    assert root_rss_error(closed.linear.poles, poles["streamed"]) < 0.05 < root_rss_error(closed.linear.poles,
+                                                                                           poles["plain"])
+
+
 @pytest.mark.parametrize(("argv", "reason"), [
     (["closed.npz", "--reference", "rr"], "closed.npz: no column 'rr' (set --reference; columns are u, y, r)"),
     (["closed.npz", "--reference", "r", "--method", "nls-arx"], "--reference: not for nls-arx"),
@@ -110,6 +129,19 @@ def test_identify_reference_from_a_column_or_a_topic(loop_files, capsys):
 def test_a_bad_reference_exits_2_with_one_line_naming_it(loop_files, capsys, argv, reason):
     root, _ = loop_files
     assert main(["identify", str(root / argv[0]), *argv[1:]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert reason in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize(("options", "reason"), [
+    (["--reference", "/setpoint:data"], "--reference: "),
+    (["--reference", "/ref:data", "--method", "nls-arx"], "--reference: not for nls-arx"),
+    (["--reference", "ref"], "--reference: expected /topic:field.path"),
+])
+def test_replay_names_a_bad_reference(loop_files, capsys, options, reason):
+    root, _ = loop_files
+    argv = ["replay", str(root / "closed.mcap"), "--input", "/cmd:data", "--output", "/position:data", *options]
+    assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert reason in err and "\n" not in err, err
 

@@ -101,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="feed a bag through the streaming engine")
     p.add_argument("bag", metavar="BAG")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     p.add_argument("--window", type=positive_int, default=None, help="window length W (samples)")
     p.add_argument("--sample-rate", type=float, default=None, help="sample grid rate in Hz (default: inferred)")

@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from ..errors import UsageError
+from ..identification.methods import REFERENCE_METHODS
 from ..io.bags import (
     Channel,
     bag_duration,
@@ -38,6 +39,7 @@ from ..io.bags import (
     engine_config_from_params,
     forget_warnings,
     load_msg_config,
+    stream_spec,
     stream_specs,
 )
 from ..io.replay import NODE_NAME, SOLVE_BATCH, ChannelReplay, check_replay_input, replay_bag, replay_channels
@@ -158,10 +160,13 @@ def run(args: argparse.Namespace) -> int:
     if channels:  # one channel: exactly the single-channel replay of its parameters
         params = channels[0].params
     excitation, response = stream_specs(args.input, args.output, params, source)
+    reference = stream_spec("--reference", "reference", args.reference, params, source, required=False)
     config, solve_rate = replay_settings(args, params, source)
+    if reference is not None and config.method not in REFERENCE_METHODS:
+        raise UsageError(f"--reference: not for {config.method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
-    check_replay_input(args.bag, excitation, response, args.out)  # every user mistake before any output
+    check_replay_input(args.bag, excitation, response, args.out, reference)  # every user mistake before any output
     progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in {excitation.topic, response.topic}))
     publisher = solver = None
     stop = SignalStop()
@@ -177,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
         stop.__enter__()  # after rclpy.init, which installs its own handlers
         result = replay_bag(args.bag, excitation, response, config, solve_rate,
                             frame_id=str(params.get("frame_id", "")), out=args.out, publisher=publisher,
-                            rate=args.rate, stop=stop, solver=solver,
+                            rate=args.rate, stop=stop, solver=solver, reference=reference,
                             progress=lambda done, samples, solves, force: progress.update(done, samples, solves, force))
     finally:
         progress.close()
@@ -215,7 +220,7 @@ def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict
     """``replay`` of a config with several channels (``replay_channels``): the command-line
     identify options apply to every channel; JSON ``{"channels": {NAME: <replay JSON>},
     "samples", "solves", "wall_s"}`` (samples and solves summed over the channels)."""
-    for option in ("input", "output"):
+    for option in ("input", "output", "reference"):
         if getattr(args, option):
             raise UsageError(f"--{option}: {source} has {len(channels)} channels; their topics come from it")
     if args.rate is not None:

@@ -42,7 +42,7 @@ SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
 SCHEMA_SEPARATOR = "=" * 80
 # msg_config keys that are not engine settings
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
-              "response_field")
+              "response_field", "reference_topic", "reference_type", "reference_field")
 OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap", "foxglove_port",
               "foxglove_host", "channels")
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
@@ -124,20 +124,26 @@ def engine_config_from_params(params: dict[str, Any], source: str = "config",
 def stream_specs(input_spec: str | None, output_spec: str | None, params: dict[str, Any] | None,
                  source: str = "config") -> tuple[StreamSpec, StreamSpec]:
     """(excitation, response) from --input/--output, falling back to the config's topics/fields."""
+    return (stream_spec("--input", "excitation", input_spec, params, source),
+            stream_spec("--output", "response", output_spec, params, source))
+
+
+def stream_spec(option: str, role: str, text: str | None, params: dict[str, Any] | None, source: str = "config",
+                required: bool = True) -> StreamSpec | None:
+    """One stream from its option (``/topic:field``), else the config's ``<role>_topic`` and
+    ``<role>_field`` (``_type`` optional); without either: a UsageError, or None when not ``required``."""
+    if text:
+        return parse_stream_spec(text, option)
     params = params or {}
-    specs = []
-    for option, role, text in (("--input", "excitation", input_spec), ("--output", "response", output_spec)):
-        if text:
-            specs.append(parse_stream_spec(text, option))
-            continue
-        topic, field = params.get(f"{role}_topic"), params.get(f"{role}_field")
-        if not topic or not field:
+    topic, field = params.get(f"{role}_topic"), params.get(f"{role}_field")
+    if not topic or not field:
+        if required or topic or field:
             raise UsageError(f"{option}: give /topic:field or a --config with {role}_topic and {role}_field")
-        try:
-            specs.append(StreamSpec(str(topic), parse_field_path(str(field)), params.get(f"{role}_type")))
-        except UsageError as exc:
-            raise UsageError(f"{source}: {role}_field: {exc}") from None
-    return specs[0], specs[1]
+        return None
+    try:
+        return StreamSpec(str(topic), parse_field_path(str(field)), params.get(f"{role}_type"))
+    except UsageError as exc:
+        raise UsageError(f"{source}: {role}_field: {exc}") from None
 
 
 @dataclass(frozen=True)

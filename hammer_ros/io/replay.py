@@ -46,7 +46,6 @@ from .bags import (
     bag_message_counts,
     check_fields,
     check_topics,
-    iter_bag_samples,
     iter_role_samples,
 )
 
@@ -99,11 +98,17 @@ class ReplayResult:
 
 
 def check_replay_input(bag: str | Path, excitation: StreamSpec, response: StreamSpec,
-                       out: str | Path | None = None) -> None:
-    """Every user mistake about the bag before any output: its topics, their fields, and an
-    ``out`` that would overwrite the bag (UsageError)."""
+                       out: str | Path | None = None, reference: StreamSpec | None = None) -> None:
+    """Every user mistake about the bag before any output: its topics, their fields (of the
+    ``reference`` too, named as --reference), and an ``out`` that would overwrite the bag (UsageError)."""
     check_topics(bag, (excitation, response))
     check_fields(bag, (excitation, response))
+    if reference is not None:
+        try:
+            check_topics(bag, (reference,))
+            check_fields(bag, (reference,))
+        except UsageError as exc:
+            raise UsageError(f"--reference: {exc}") from None
     if out and any(Path(out).resolve() == f.resolve() for f in bag_files(bag)):
         raise UsageError(f"--out: {out} is the bag being replayed (it would be overwritten)")
 
@@ -113,7 +118,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                publisher: Publisher | None = None, rate: float | None = None, stop: Stop | None = None,
                progress: Callable[[int, int, int, bool], None] | None = None,
                node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False,
-               solver: SolverProcess | None = None) -> ReplayResult:
+               solver: SolverProcess | None = None, reference: StreamSpec | None = None) -> ReplayResult:
     """Replay ``bag`` (checked by ``check_replay_input``) through a new engine.
 
     ``out``: write every result message into this MCAP (with ``atomic``: under a temporary name,
@@ -121,12 +126,15 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
     ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
     ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads);
-    ``solver``: solve there, overlapping the reading (module docstring).
+    ``solver``: solve there, overlapping the reading (module docstring); ``reference``: a closed
+    loop's reference (checked like the streams), the instrument of every solve (``add_reference``;
+    a message of n > 1 samples is placed at the grid rate once it is known).
     """
     counts = bag_message_counts(bag)
-    total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
+    streams = [("excitation", excitation), ("response", response)] + ([("reference", reference)] if reference else [])
+    total = sum(counts.get(topic, 0) for topic in {spec.topic for _, spec in streams})
     read = BagReadStats()
-    engine = StreamingEngine(config)
+    engine = StreamingEngine(config, reference=reference is not None)
     last_ok: SolveOutcome | None = None
     last: SolveOutcome | None = None
     target = (Path(out).with_name(f".{Path(out).stem}.partial.mcap") if atomic else Path(out)) if out else None
@@ -179,7 +187,11 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     bag_time = float("nan")
     complete = False
     try:
-        for sample in iter_bag_samples(bag, excitation, response, read):
+        check_topics(bag, tuple(spec for _, spec in streams))
+        for sample in iter_role_samples(bag, streams, read):
+            if sample.stream == "reference":
+                add_reference(engine, sample.stamp, sample.values)
+                continue
             if bag_start is None:
                 bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
             if publisher and rate:  # pace: bag time / rate = wall time since the start
@@ -220,6 +232,15 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         window = (snapshot.v, snapshot.y)
     return ReplayResult(str(bag), last_ok, last, engine.stats, read, done, total, time.perf_counter() - started,
                         writer.count if writer else 0, first, bag_time, window)
+
+
+def add_reference(engine: StreamingEngine, stamp: float, values: np.ndarray | float) -> None:
+    """One reference message's samples into ``engine`` (batch convention: the last at the stamp,
+    spacing 1 / the grid rate; a batch before the rate is known is left out)."""
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    rate = engine.sample_rate
+    if values.size == 1 or rate:
+        engine.add_reference(stamp - np.arange(values.size - 1, -1, -1) / (rate or 1.0), values)
 
 
 def bag_values(read: BagReadStats) -> list[dict]:
