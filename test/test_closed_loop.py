@@ -155,3 +155,44 @@ def test_diagnose_says_closed_loop(loop_files, capsys):
     assert len(rows["closed"]) == len(rows["open"]) == 1
     assert rows["closed"][0]["passed"] is False and rows["open"][0]["passed"] is True
     assert rows["closed"][0]["value"] > rows["closed"][0]["bound"]
+
+
+@pytest.mark.ros
+def test_the_live_node_uses_its_reference_topic(ros_env, tmp_path):
+    """A closed loop published live (header-stamped JointStates on /cmd, /ref, /position): with
+    reference_topic the node's model is the instrumented one, near the true poles."""
+    import signal
+
+    from ros_helpers import Listener, RosProcess
+    from sensor_msgs.msg import JointState
+
+    closed, _ = random_loop_pair(104, samples=SAMPLES)
+    fields = {f"{role}_{key}": value for role, topic in (("excitation", "/cmd"), ("response", "/position"),
+                                                         ("reference", "/ref"))
+              for key, value in (("topic", topic), ("type", "sensor_msgs/msg/JointState"), ("field", "position[j]"))}
+    node = RosProcess("hammer_ros.ros.node", {**fields, "sample_rate": 100.0, "order": 3, "window": SAMPLES,
+                                              "tau_max": 66, "solve_rate": 2.0, "min_fill": 0.9,
+                                              "diagnosis_period": 0.0}, ros_env, tmp_path / "node.log")
+    listener = Listener(ros_env)
+    try:
+        models = listener.subscribe_json("/hammer_ros/model")
+        publishers = {topic: listener.node.create_publisher(JointState, topic, 1000)
+                      for topic in ("/cmd", "/ref", "/position")}
+        listener.wait_for(lambda: all(p.get_subscription_count() for p in publishers.values()),
+                          what="the node's subscriptions")
+        start = 1_700_000_000
+        for k in range(SAMPLES):
+            for topic, x in (("/cmd", closed.u), ("/ref", closed.r), ("/position", closed.y)):
+                msg = JointState(name=["j"], position=[float(x[k])])
+                msg.header.stamp.sec, msg.header.stamp.nanosec = start + k // 100, (k % 100) * 10_000_000
+                publishers[topic].publish(msg)
+            if k % 50 == 49:
+                listener.executor.spin_once(timeout_sec=0.01)  # pace the burst: the queue holds 1000
+        model = listener.wait_for(lambda: [m for m in models if m["samples"] >= SAMPLES - 100],
+                                  what="a model of the whole record")[-1]
+        poles = np.array([complex(*p) for p in model["poles"]])
+        assert root_rss_error(closed.linear.poles, poles) < 0.08, model
+    finally:
+        listener.close()
+        code = node.stop(signal.SIGINT)
+    assert code == 0, node.output()[-2000:]

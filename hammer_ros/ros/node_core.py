@@ -55,7 +55,7 @@ from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E40
 from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST  # noqa: E402
 from ..diagnosis.closed_loop import WARNING as CLOSED_LOOP_WARNING  # noqa: E402
 from ..errors import UsageError  # noqa: E402
-from ..identification.methods import METHODS  # noqa: E402
+from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
@@ -81,6 +81,7 @@ FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
 WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``activate``)
 MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
+REFERENCE = "reference"  # the optional third input: a closed loop's reference (``reference_topic``)
 STREAMING_METHODS = tuple(m for m in METHODS if m != "semiparametric")
 _TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
@@ -106,6 +107,10 @@ PARAMETERS: dict[str, Spec] = {
     "response_topic": Spec("/response", "str", "topic of the response (sensor) y"),
     "response_type": Spec("std_msgs/msg/Float64", "str", "message type of response_topic"),
     "response_field": Spec("data", "str", "field path of y"),
+    "reference_topic": Spec("", "str", "topic of a closed loop's external reference r, the instrument of every "
+                            f"solve ({', '.join(REFERENCE_METHODS)}); '' = none", read_only=True),
+    "reference_type": Spec("std_msgs/msg/Float64", "str", "message type of reference_topic", read_only=True),
+    "reference_field": Spec("data", "str", "field path of r", read_only=True),
     "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e8),
     "window": Spec(4000, "int", "W: samples in the sliding window", 16, MAX_WINDOW),
     "forgetting": Spec(1.0, "float", "1 = exact sliding window; < 1 = exponential forgetting factor", 0.0, 1.0),
@@ -361,7 +366,7 @@ class IdentificationCore:
         self.diagnoser_lost = ""  # why it is gone, when it went
         self._writer: ResultWriter | None = None
         self._outputs: dict[str, Any] = {}
-        self.inputs = {s: _Input(s) for s in STREAMS}
+        self.inputs = {s: _Input(s) for s in (*STREAMS, REFERENCE)}
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
         self.closed_loop: bool | None = None  # the last diagnosis's ``closed_loop`` verdict (None: none yet)
@@ -381,14 +386,17 @@ class IdentificationCore:
         publishers, the output_mcap writer and the Foxglove server."""
         self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
         config = engine_config(self.values)
-        for stream in STREAMS:  # fail fast on a bad configuration
+        for stream in self._streams():  # fail fast on a bad configuration
             self._check_stream(stream, self.values)
+        if self.values["reference_topic"] and self.values["method"] not in REFERENCE_METHODS:
+            raise UsageError(f"reference_topic: the method {self.values['method']} has no instrumented form "
+                             f"(use one of {', '.join(REFERENCE_METHODS)})")
         if self.values["foxglove_port"]:
             from .foxglove_server import DashboardServer  # the SDK only when asked for
 
             self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
                                           self._warn_throttled)
-        self.engine = StreamingEngine(config)
+        self.engine = StreamingEngine(config, reference=bool(self.values["reference_topic"]))
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
         if self.values["solver_process"]:
@@ -414,7 +422,7 @@ class IdentificationCore:
         if self.solver is not None and not self.solver.wait_ready(WORKER_READY_SECONDS):
             self.get_logger().warning(f"the solver process is not ready after {WORKER_READY_SECONDS:g} s; "
                                       "subscribing anyway (solves wait for it)")
-        for stream in STREAMS:
+        for stream in self._streams():
             self._subscribe(stream)
         self._stop = stop = threading.Event()  # per activation: a thread still finishing a solve sees its own
         self._workers = [threading.Thread(target=loop, args=(stop,), name=f"hammer_ros_{what}", daemon=True)
@@ -492,6 +500,10 @@ class IdentificationCore:
         source.subscribe(self, cls, self.values[f"{stream}_topic"], _queueing_callback(source), qos,
                          raw=source.raw is not None)
 
+    def _streams(self) -> tuple[str, ...]:
+        """The input streams: excitation, response and, when ``reference_topic`` is set, reference."""
+        return (*STREAMS, REFERENCE) if self.values["reference_topic"] else STREAMS
+
     def _bad_message(self, stream: str, exc: Exception) -> None:
         source = self.inputs[stream]
         source.field_errors += 1
@@ -504,6 +516,9 @@ class IdentificationCore:
         with self._lock:
             pending = {stream: _drained(source.pending) for stream, source in self.inputs.items()}
             batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
+            reference = batches.pop(REFERENCE, None)
+            if reference is not None:
+                self.engine.add_reference(*reference)
             self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
             for source in self.inputs.values():
                 source.pending_limit = max(1, self.values["max_pending"] // source.message_samples)
@@ -536,7 +551,8 @@ class IdentificationCore:
             if stamp and n == 1:
                 first = stamp
             elif stamp:  # a stamped batch: the last sample at the stamp
-                t = self.engine.message_stamps(stream, stamp, n)
+                t = (self.engine.message_stamps(stream, stamp, n) if stream != REFERENCE else
+                     stamp - np.arange(n - 1, -1, -1) / self.stamper.rate if self.stamper.rate else None)
                 if t is None:
                     self.engine.stats.unstamped += 1
                     continue
@@ -835,7 +851,7 @@ class IdentificationCore:
         status["values"].extend({"key": k, "value": str(v)} for k, v in values.items())
         if self.closed_loop is not None:
             status["values"].append({"key": "closed_loop", "value": str(self.closed_loop).lower()})
-        if self.closed_loop:
+        if self.closed_loop and not self.values["reference_topic"]:
             status["level"] = max(status["level"], 1)
             status["message"] = f"{status['message']}; {CLOSED_LOOP_WARNING}"
         errors = [s.last_error for s in self.inputs.values() if s.field_errors]
