@@ -396,7 +396,7 @@ class IdentificationCore:
 
             self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
                                           self._warn_throttled)
-        self.engine = StreamingEngine(config, reference=bool(self.values["reference_topic"]))
+        self.engine = self._new_engine(config)
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
         if self.values["solver_process"]:
@@ -499,6 +499,10 @@ class IdentificationCore:
         source.pending_limit = max(1, self.values["max_pending"] // source.message_samples)
         source.subscribe(self, cls, self.values[f"{stream}_topic"], _queueing_callback(source), qos,
                          raw=source.raw is not None)
+
+    def _new_engine(self, config: EngineConfig) -> StreamingEngine:
+        """An empty engine of ``config`` (holding the reference when ``reference_topic`` is set)."""
+        return StreamingEngine(config, reference=bool(self.values["reference_topic"]))
 
     def _streams(self) -> tuple[str, ...]:
         """The input streams: excitation, response and, when ``reference_topic`` is set, reference."""
@@ -633,7 +637,7 @@ class IdentificationCore:
             if streams:  # a new signal: the window restarts
                 for source in self.inputs.values():
                     source.pending.clear()
-                self.engine = StreamingEngine(config)
+                self.engine = self._new_engine(config)
                 self.stamper.set_rate(config.sample_rate)
                 for stream in streams if self.active else ():
                     self._subscribe(stream)
@@ -791,7 +795,8 @@ class IdentificationCore:
     def _check_publisher_types(self) -> None:
         """Note publishers of another message type on an input topic: DDS never delivers their
         messages, so without this a wrong type would look like silence."""
-        for stream, source in self.inputs.items():
+        for stream in self._streams():
+            source = self.inputs[stream]
             topic = expand_topic_name(self.values[f"{stream}_topic"], self.get_name(), self.get_namespace())
             wanted = _normal_type(self.values[f"{stream}_type"])
             others = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)
@@ -888,7 +893,7 @@ class IdentificationCore:
             for source in self.inputs.values():
                 source.pending.clear()
             dropped = self.engine.snapshot().v.size
-            self.engine = StreamingEngine(self.engine.config)
+            self.engine = self._new_engine(self.engine.config)
             self.stamper = ArrivalStamper(self.values["sample_rate"])
             self.last_outcome = None
         self.get_logger().info(f"window reset by ~/reset ({dropped} samples dropped)")
