@@ -7,6 +7,9 @@ true poles); the ``closed_loop`` evidence row fails on closed-loop data and pass
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -117,6 +120,18 @@ def test_replay_with_the_reference_equals_identify(loop_files, capsys, method):
     assert root_rss_error(poles["batch"], poles["streamed"]) < 1e-9
     assert root_rss_error(closed.linear.poles, poles["streamed"]) < 0.05 < root_rss_error(closed.linear.poles,
                                                                                            poles["plain"])
+
+
+def test_fleet_with_the_reference_gives_the_replay_model(loop_files, capsys, tmp_path):
+    root, _ = loop_files
+    common = ["--input", "/cmd:data", "--output", "/position:data", "--order", "3", "--reference", "/ref:data"]
+    replayed = run_json(capsys, "replay", str(root / "closed.mcap"), *common, "--json")
+    done = subprocess.run([str(Path(sys.executable).parent / "hammer-ros"), "fleet", str(root / "closed.mcap"),
+                           *common, "--workers", "1", "--out", str(tmp_path / "fleet"), "--json"],
+                          capture_output=True, text=True, timeout=300)  # a cluster of its own: a process
+    assert done.returncode == 0, done.stderr[-2000:]
+    fleet = json.loads(done.stdout)
+    assert fleet["ok"] == 1 and fleet["rows"][0]["poles"] == replayed["poles"]
 
 
 @pytest.mark.parametrize(("argv", "reason"), [

@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fleet", help="replay many bags on Dask distributed; what changed per group")
     p.add_argument("bags", nargs="*", metavar="BAGS", help=".mcap files, rosbag2 directories, directories to search")
     p.add_argument("--manifest", default=None, metavar="FILE", help="CSV: a path column and label columns")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     for option, kind in (("--window", positive_int), ("--sample-rate", float), ("--solve-rate", float),
                          ("--forgetting", float)):
