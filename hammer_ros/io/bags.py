@@ -754,7 +754,8 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
     (a longer bag is a UsageError pointing to ``replay``, which keeps only a window).
 
-    ``reference_spec`` (``--reference /topic:field``, a closed loop's reference): aligned with
+    ``reference_spec`` (``--reference /topic:field``, else the config's ``reference_topic`` and
+    ``reference_field``; a closed loop's reference): aligned with
     the excitation the same way, then read at the record's sample times (linear interpolation;
     on the common grid these are its own samples)."""
     forget_warnings()
@@ -763,10 +764,11 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
                                    "or replay for every channel)")
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
+    reference = stream_spec("--reference", "reference", reference_spec, params, str(config or "config"),
+                            required=False)
     t, v, y = _aligned_samples(path, excitation, response, engine_config)
-    if reference_spec is None:
+    if reference is None:
         return Record(v, y, t, str(path))
-    reference = parse_stream_spec(reference_spec, "--reference")
     try:
         t_r, _, r = _aligned_samples(path, excitation, reference, engine_config)
     except UsageError as exc:
