@@ -211,3 +211,20 @@ def test_the_live_node_uses_its_reference_topic(ros_env, tmp_path):
         listener.close()
         code = node.stop(signal.SIGINT)
     assert code == 0, node.output()[-2000:]
+
+
+def test_the_reference_is_held_on_the_grid_and_none_across_a_gap():
+    from hammer_ros.streaming.reference import ReferenceTrack
+
+    track = ReferenceTrack(10)
+    track.grid(np.arange(5.0))
+    track.add(np.arange(5.0), 10 * np.arange(5.0))
+    np.testing.assert_array_equal(track.window(5, 1e-3, 3.0), [0, 10, 20, 30, 40])
+    track.grid(np.arange(5.0, 12.0))
+    track.add(np.arange(5.0, 9.0), 10 * np.arange(5.0, 9.0))
+    held = track.window(10, 1e-3, 2.5)  # the newest 10 grid times 2..11; none at 11 (3 s after the last)
+    np.testing.assert_array_equal(held[:-1], [20, 30, 40, 50, 60, 70, 80, 80, 80])
+    assert np.isnan(held[-1])
+    track.add(np.array([0.5]), np.array([-1.0]))  # a clock reset: the track starts again
+    track.grid(np.array([0.5, 0.6]))
+    np.testing.assert_array_equal(track.window(2, 1e-3, 2.5), [-1.0, -1.0])

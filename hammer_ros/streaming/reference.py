@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .config import CLOCK_RESET_SECONDS
+
 
 class ReferenceTrack:
     """Grid times and reference samples of the newest ``capacity`` grid points."""
@@ -35,9 +37,12 @@ class ReferenceTrack:
 
     def add(self, t: np.ndarray, r: np.ndarray) -> None:
         """Reference samples r at stamps t (s); non-finite ones and stamps older than the newest
-        kept one are skipped (the grid only moves forward)."""
+        kept one are skipped (the grid only moves forward), except after a jump back of more than
+        CLOCK_RESET_SECONDS (a sim-time reset, a bag loop): the track then starts again."""
         t, r = np.atleast_1d(np.asarray(t, dtype=float)), np.atleast_1d(np.asarray(r, dtype=float))
         newest = self._t[-1] if self._t.size else -np.inf
+        if t.size and t[0] < newest - CLOCK_RESET_SECONDS:
+            self._t, self._r, newest = self._t[:0], self._r[:0], -np.inf
         keep = np.isfinite(t) & np.isfinite(r) & (t > newest)
         self._t, self._r = np.concatenate([self._t, t[keep]]), np.concatenate([self._r, r[keep]])
         if self._grid.size and self._t.size > 2 * self.capacity:
