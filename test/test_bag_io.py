@@ -73,7 +73,7 @@ def test_field_errors_name_the_field(path, message):
     assert message in str(err.value) and "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("text", ["", "velocity[", "a..b", "data[x]", "2x", "data[:][:]"])
+@pytest.mark.parametrize("text", ["", "velocity[", "a..b", "data[]", "data[x][y]", "2x", "data[:][:]"])
 def test_malformed_field_paths_are_usage_errors(text):
     with pytest.raises(UsageError, match="field path"):
         parse_field_path(text)

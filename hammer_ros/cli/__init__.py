@@ -26,6 +26,7 @@ from .common import (
     options_from_args,
     positive_int,
     split_choice,
+    with_reference,
 )
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
@@ -39,14 +40,16 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
     options = options_from_args(args)
     record = load_data(args.data, args)
+    options = with_reference(options, record)
     try:
         result = identify(args.method, record.v, record.y, options)
     except IdentificationError as exc:  # name the data the method could not identify from
         raise IdentificationError(f"{args.data}: {exc}") from None
     if args.refine:
+        from ..identification.instrumental import refinement_input
         from ..identification.refinement import refine_result
 
-        result = refine_result(result, record.v, record.y)
+        result = refine_result(result, refinement_input(record.v, record.r), record.y)
     doc = result.to_json(record.v, record.y)
     emit(doc, args.json, format_model(doc))
     return 0
@@ -79,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("identify", help="batch identification of a record")
     p.add_argument("data", metavar="DATA", help="CSV, NPZ, .mcap or rosbag2 directory")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     p.add_argument("--refine", action="store_true",
                    help="refine the method's estimate on the simulation error (all its parts)")
@@ -101,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="feed a bag through the streaming engine")
     p.add_argument("bag", metavar="BAG")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     p.add_argument("--window", type=positive_int, default=None, help="window length W (samples)")
     p.add_argument("--sample-rate", type=float, default=None, help="sample grid rate in Hz (default: inferred)")
@@ -121,7 +124,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fleet", help="replay many bags on Dask distributed; what changed per group")
     p.add_argument("bags", nargs="*", metavar="BAGS", help=".mcap files, rosbag2 directories, directories to search")
     p.add_argument("--manifest", default=None, metavar="FILE", help="CSV: a path column and label columns")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     add_identify_options(p)
     for option, kind in (("--window", positive_int), ("--sample-rate", float), ("--solve-rate", float),
                          ("--forgetting", float)):

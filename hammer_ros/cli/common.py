@@ -6,6 +6,7 @@ import argparse
 import json
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -60,11 +61,16 @@ def positive_int(text: str) -> int:
 
 
 
-def add_data_options(p: argparse.ArgumentParser) -> None:
-    """Where the input/output signals are: CSV/NPZ column names or bag topic:field specs."""
+def add_data_options(p: argparse.ArgumentParser, reference: bool = False) -> None:
+    """Where the input/output signals are: CSV/NPZ column names or bag topic:field specs
+    (``reference``: also --reference, the closed loop's reference signal)."""
     p.add_argument("--input", default=None, help="input column (CSV/NPZ, default u) or /topic:field.path (bag)")
     p.add_argument("--output", default=None, help="output column (CSV/NPZ, default y) or /topic:field.path (bag)")
     p.add_argument("--config", default=None, help="msg_config YAML mapping topics and fields (bags)")
+    if reference:
+        p.add_argument("--reference", default=None, metavar="COLUMN_OR_TOPIC:FIELD",
+                       help="closed loop: the external reference r (CSV/NPZ column or /topic:field.path), the "
+                       "instrument of cls-arx, cls-markov and plls-hammerstein")
 
 
 
@@ -130,6 +136,11 @@ def options_from_args(args: argparse.Namespace) -> IdentifyOptions:
     )
 
 
+def with_reference(options: IdentifyOptions, record) -> IdentifyOptions:
+    """``options`` with the record's reference (``--reference``) as the instrument."""
+    return options if record.r is None else replace(options, reference=record.r)
+
+
 
 def is_bag(path: str) -> bool:
     p = Path(path)
@@ -144,10 +155,11 @@ def load_data(path: str, args: argparse.Namespace):
     if is_bag(path):
         from ..io.bags import load_bag_record
 
-        return load_bag_record(path, input_spec=args.input, output_spec=args.output, config=args.config)
+        return load_bag_record(path, input_spec=args.input, output_spec=args.output, config=args.config,
+                               reference_spec=getattr(args, "reference", None))
     if getattr(args, "config", None):
         raise UsageError(f"--config: a msg_config maps bag topics, but {path} is a CSV/NPZ file (use --input/--output)")
-    return load_record(path, args.input or "u", args.output or "y")
+    return load_record(path, args.input or "u", args.output or "y", reference_name=getattr(args, "reference", None))
 
 
 

@@ -26,7 +26,15 @@ PARQUET, HTML, MCAP_DIR = "fleet.parquet", "fleet.html", "mcap"
 def run(args: argparse.Namespace) -> int:
     from ..fleet.runner import FleetProgress, connect, run_fleet
     from ..fleet.table import read_rows, write_parquet
-    from ..io.bags import engine_config_from_params, forget_warnings, load_msg_config, stream_specs
+    from ..identification.methods import REFERENCE_METHODS
+    from ..io.bags import (
+        engine_config_from_params,
+        forget_warnings,
+        load_msg_config,
+        single_channel_params,
+        stream_spec,
+        stream_specs,
+    )
     from .replay import SignalStop, replay_settings
 
     forget_warnings()
@@ -40,11 +48,15 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("BAGS and --manifest: give one")
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
+    params = single_channel_params(params, source, "fleet replays one channel per bag (not several yet)")
     excitation, response = stream_specs(args.input, args.output, params, source)
+    reference = stream_spec("--reference", "reference", args.reference, params, source, required=False)
     engine_config_from_params(params, source)
     config, solve_rate = replay_settings(args, params, source)
+    if reference is not None and config.method not in REFERENCE_METHODS:
+        raise UsageError(f"--reference: not for {config.method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
     sources = _sources(args)
-    _check_first_bag(sources, excitation, response)
+    _check_first_bag(sources, excitation, response, reference)
     out_dir = Path(args.out or ".")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -55,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.tasks import FleetSettings
 
     settings = FleetSettings(excitation, response, config, solve_rate, str(params.get("frame_id", "")),
-                             args.diagnose, str((out_dir / MCAP_DIR).resolve()) if args.out else None)
+                             args.diagnose, str((out_dir / MCAP_DIR).resolve()) if args.out else None, reference)
     parquet = out_dir / PARQUET
     done_rows: list[dict] = []
     if args.resume and parquet.exists():
@@ -138,7 +150,7 @@ def _sources(args: argparse.Namespace):
     return sources_from_paths(args.bags)
 
 
-def _check_first_bag(sources, excitation, response) -> None:
+def _check_first_bag(sources, excitation, response, reference=None) -> None:
     """The topics and fields on the first bag that can be read (a bag that cannot be read at all
     becomes an error row): a fleet whose bags lack them is a user mistake, found before any task."""
     from ..io.bags import bag_topics
@@ -150,7 +162,7 @@ def _check_first_bag(sources, excitation, response) -> None:
                 continue
         except HammerRosError:
             continue
-        check_replay_input(source.path, excitation, response)
+        check_replay_input(source.path, excitation, response, reference=reference)
         return
 
 

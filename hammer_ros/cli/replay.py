@@ -33,16 +33,20 @@ import time
 from pathlib import Path
 
 from ..errors import UsageError
+from ..identification.methods import REFERENCE_METHODS
 from ..io.bags import (
+    Channel,
     bag_duration,
     bag_message_counts,
     check_output_path,
+    config_channels,
     engine_config_from_params,
     forget_warnings,
     load_msg_config,
+    stream_spec,
     stream_specs,
 )
-from ..io.replay import NODE_NAME, SOLVE_BATCH, check_replay_input, replay_bag
+from ..io.replay import NODE_NAME, SOLVE_BATCH, ChannelReplay, check_replay_input, replay_bag, replay_channels
 from ..streaming.config import CLS_STRUCTURES, EngineConfig
 from ..streaming.solver_process import SolverProcess
 from .common import check_option_conflicts, format_model
@@ -154,12 +158,20 @@ def run(args: argparse.Namespace) -> int:
     forget_warnings()
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
+    channels = config_channels(params, source)
+    if len(channels) > 1:
+        return run_channels(args, channels, params, source)
+    if channels:  # one channel: exactly the single-channel replay of its parameters
+        params = channels[0].params
     excitation, response = stream_specs(args.input, args.output, params, source)
+    reference = stream_spec("--reference", "reference", args.reference, params, source, required=False)
     config, solve_rate = replay_settings(args, params, source)
+    if reference is not None and config.method not in REFERENCE_METHODS:
+        raise UsageError(f"--reference: not for {config.method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
     if args.rate is not None and not (math.isfinite(args.rate) and args.rate > 0):
         raise UsageError(f"--rate: must be > 0 (got {args.rate})")
     # every user mistake before any output
-    check_replay_input(args.bag, excitation, response, args.out, args.dashboard_out)
+    check_replay_input(args.bag, excitation, response, args.out, args.dashboard_out, reference)
     for option, path in (("--out", args.out), ("--dashboard-out", args.dashboard_out)):
         if path:
             check_output_path(path, option)
@@ -180,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
         result = replay_bag(args.bag, excitation, response, config, solve_rate,
                             frame_id=str(params.get("frame_id", "")), out=args.out, publisher=publisher,
                             rate=args.rate, stop=stop, solver=solver, dashboard_out=args.dashboard_out,
-                            diagnose=args.diagnose,
+                            diagnose=args.diagnose, reference=reference,
                             progress=lambda done, samples, solves, force: progress.update(done, samples, solves, force))
     finally:
         progress.close()
@@ -215,3 +227,46 @@ def run(args: argparse.Namespace) -> int:
         if result.diagnosis is not None:
             print(f"diagnosis {result.diagnosis.get('cause', result.diagnosis.get('error'))}")
     return 0 if stop.signal is None else 128 + stop.signal
+
+
+def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict, source: str) -> int:
+    """``replay`` of a config with several channels (``replay_channels``): the command-line
+    identify options apply to every channel; JSON ``{"channels": {NAME: <replay JSON>},
+    "samples", "solves", "wall_s"}`` (samples and solves summed over the channels)."""
+    for option in ("input", "output", "reference"):
+        if getattr(args, option):
+            raise UsageError(f"--{option}: {source} has {len(channels)} channels; their topics come from it")
+    if args.rate is not None:
+        raise UsageError(f"--rate: not with several channels ({source} has {len(channels)}); replay runs them "
+                         "as fast as possible")
+    for option, given in (("--dashboard-out", args.dashboard_out), ("--diagnose", args.diagnose)):
+        if given:
+            raise UsageError(f"{option}: not with several channels ({source} has {len(channels)}) yet; replay one "
+                             "channel's config for it")
+    runs = []
+    for channel in channels:
+        config, solve_rate = replay_settings(args, channel.params, f"{source}: channel {channel.name!r}")
+        check_replay_input(args.bag, channel.excitation, channel.response, args.out)
+        runs.append(ChannelReplay(channel.name, channel.excitation, channel.response, config, solve_rate))
+    topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
+    progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in topics))
+    try:
+        results = replay_channels(args.bag, runs, frame_id=str(params.get("frame_id", "")), out=args.out,
+                                  progress=progress.update)
+    finally:
+        progress.close()
+    next(iter(results.values())).read.report(args.bag)
+    docs = {name: result.document() for name, result in results.items()}
+    wall = max(result.wall_s for result in results.values())
+    doc = {"channels": docs, "samples": sum(d["samples"] for d in docs.values()),
+           "solves": sum(d["solves"] for d in docs.values()), "wall_s": round(wall, 4)}
+    if args.json:
+        json.dump(doc, sys.stdout, allow_nan=False)
+        sys.stdout.write("\n")
+        return 0
+    for name, channel_doc in docs.items():
+        print(f"channel  {name}")
+        print(format_model(channel_doc))
+    print(f"replay   {len(docs)} channels, {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s"
+          + (f"; {next(iter(results.values())).written} messages -> {Path(args.out)}" if args.out else ""))
+    return 0

@@ -32,6 +32,7 @@ from scipy import stats
 
 from ..identification.result import fit_percent, rms_error, strict_json
 from .chain import Chain, Step, extend_chain
+from .closed_loop import closed_loop_evidence
 from .coverage import input_coverage, judged_split
 from .evidence import (
     CauseTest,
@@ -208,6 +209,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
                                        "named")
     evidence = (coverage.evidence(), *(t.evidence() for t in correlation), *(t.evidence for t in cause_tests))
     confidence = _confidence(cause, gains, evidence) * (TIED_CONFIDENCE if tied else 1.0)
+    evidence += (closed_loop_evidence(split.v_val[rows], e_val[rows]),)
     chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
     final = None if chain is None else chain.final
     extended_score = None if final is None else _score(final.structure, split, final.validation_output)

@@ -32,11 +32,14 @@ class FleetSettings:
     frame_id: str = ""
     diagnose: bool = False
     results_dir: str | None = None  # each bag's results MCAP goes to results_dir / source.name
+    reference: StreamSpec | None = None  # a closed loop's reference, the solves' instrument (``replay --reference``)
 
     def fingerprint(self) -> str:
         """The settings that decide a row (a resumed run must use the same)."""
         doc = {"excitation": str(self.excitation), "response": str(self.response), "config": asdict(self.config),
                "solve_rate": self.solve_rate, "diagnose": self.diagnose}
+        if self.reference is not None:
+            doc["reference"] = str(self.reference)
         return json.dumps(doc, sort_keys=True, default=str)
 
 
@@ -50,12 +53,12 @@ def run_bag(settings: FleetSettings, source: BagSource) -> dict[str, Any]:
     forget_warnings()
     try:
         out = Path(settings.results_dir) / source.name if settings.results_dir else None
-        check_replay_input(source.path, settings.excitation, settings.response, out)
+        check_replay_input(source.path, settings.excitation, settings.response, out, reference=settings.reference)
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
         result = replay_bag(source.path, settings.excitation, settings.response, settings.config,
                             settings.solve_rate, frame_id=settings.frame_id, out=out, atomic=True,
-                            keep_window=settings.diagnose)
+                            keep_window=settings.diagnose, reference=settings.reference)
         row["warnings"] = result.read.warnings(source.path)
         row["start"], row["end"] = _finite(result.first_stamp), _finite(result.last_stamp)
         row["model"] = result.document()

@@ -38,6 +38,7 @@ from numpy.lib.stride_tricks import as_strided
 from ..errors import IdentificationError
 from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
+from .instrumental import check_reference, reference_part, solve_instrumental
 from .linear import LinearModel
 from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
 from .regression import Regression, fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
@@ -151,7 +152,7 @@ def correlation_functions(v: np.ndarray, y: np.ndarray, tau_max: int) -> tuple[n
 
 def gain_correction(
     v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, poly: int = 3,
-    basis: np.ndarray | None = None,
+    basis: np.ndarray | None = None, instrument_basis: np.ndarray | None = None,
 ) -> np.ndarray:
     """CLS step 2 (paper 000 sec. 3.1): gamma_1 .. gamma_p of
 
@@ -169,7 +170,12 @@ def gain_correction(
 
     ``basis`` (N x q, its first column the constant) replaces the monomials 1, v, ..., v^p:
     the paper's step 2 is linear in any basis functions of v, e.g. the point-slope basis of
-    paper 001 (``piecewise_linear_step``)."""
+    paper 001 (``piecewise_linear_step``).
+
+    ``instrument_basis`` (the same basis of a noise-free input, e.g. ``instrumental.reference_part``
+    of v in closed loop): the regressors' instruments, filtered alike; theta then solves the IV
+    system of ``instrumental.solve_instrumental`` instead of the least squares (the equation error
+    A_hat w is uncorrelated with them)."""
     try:
         output_lags, input_lags = markov_lags(order, delay, step1.mu)
     except ValueError as exc:
@@ -185,10 +191,15 @@ def gain_correction(
     target = y[first:].copy()  # A_hat(q^-1) y = lfilter(denominator, [1], y)[first:], its n lags added
     for lag, alpha in zip(output_lags.tolist(), step1.denominator.tolist(), strict=True):
         target += alpha * y[first - lag : first - lag + rows]
-    regressors = np.empty((rows, basis.shape[1]), order="F")
-    regressors[:, 0] = basis[0, 0] * numerator.sum()  # the constant column's FIR
-    _fir_valid(basis[:, 1:], numerator, regressors[:, 1:])
-    return least_squares_qr(regressors, target)
+
+    def filtered(columns: np.ndarray) -> np.ndarray:
+        out = np.empty((rows, columns.shape[1]), order="F")
+        out[:, 0] = columns[0, 0] * numerator.sum()  # the constant column's FIR
+        _fir_valid(columns[:, 1:], numerator, out[:, 1:])
+        return out
+    if instrument_basis is not None:
+        return solve_instrumental(filtered(basis), target, filtered(instrument_basis))
+    return least_squares_qr(filtered(basis), target)
 
 
 def _fir_valid(x: np.ndarray, taps: np.ndarray, out: np.ndarray) -> None:
@@ -220,7 +231,7 @@ def correlation_least_squares(
 
 def correlation_least_squares_steps(
     phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1,
-    poly: int = 3, partition: np.ndarray | None = None,
+    poly: int = 3, partition: np.ndarray | None = None, instrument: np.ndarray | None = None,
 ) -> HammersteinEstimate:
     """CLS steps 1 and 2 (paper 000 sec. 3.1) from given correlation functions (indexed by
     tau + tau_max, e.g. the streaming engine's window sums) and the raw record for step 2.
@@ -244,14 +255,19 @@ def correlation_least_squares_steps(
     estimator stays the paper's eq. (8) - which the streaming engine updates recursively.
 
     With ``partition`` F is piecewise linear on those breakpoints instead (``piecewise_linear_step``).
+
+    Closed loop (``instrumental``): given phi_vr, phi_yr (the correlations with the reference)
+    as ``phi_vv``, ``phi_yv`` and the reference's part of v as ``instrument``, step 1 is the same
+    regression and step 2 the IV solve with the basis of ``instrument`` as instruments.
     """
     v, y = _check_record(v, y)
     phi_vv, phi_yv = _check_record(phi_vv, phi_yv)
     _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu, intercept=True)
     step1 = linear_estimate(a, coefficients[:, 0], order, delay, mu)
     if partition is not None:
-        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float))
-    gamma = gain_correction(v, y, step1, order, delay, poly)
+        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float), instrument)
+    gamma = gain_correction(v, y, step1, order, delay, poly, instrument_basis=None if instrument is None
+                            else polynomial_basis(instrument, poly, constant=True))
     mean, slope, coefficients = float(v.sum() / v.size), 0.0, gamma.tolist()  # v.mean()
     for power in range(gamma.size - 1, 0, -1):  # F'(mean v) = sum_l l gamma_l mean^(l-1) by Horner's rule
         slope = slope * mean + power * coefficients[power]
@@ -262,7 +278,8 @@ def correlation_least_squares_steps(
 
 
 def piecewise_linear_step(
-    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, partition: np.ndarray
+    v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, partition: np.ndarray,
+    instrument: np.ndarray | None = None,
 ) -> HammersteinEstimate:
     """CLS step 2 with a piecewise-linear F (an extension: paper 000's step 2 in the
     point-slope basis of paper 001, eqs. 8-11): F(v) = eta(v)^T m + kappa on ``partition``
@@ -274,7 +291,10 @@ def piecewise_linear_step(
     check_partition(v, partition, "input")
     primary = default_primary_index(partition)
     eta = point_slope_basis(v, partition, primary)
-    theta = gain_correction(v, y, step1, order, delay, basis=np.column_stack([np.ones(v.size), eta]))
+    instruments = None if instrument is None else np.column_stack(
+        [np.ones(v.size), point_slope_basis(instrument, partition, primary)])
+    theta = gain_correction(v, y, step1, order, delay, basis=np.column_stack([np.ones(v.size), eta]),
+                            instrument_basis=instruments)
     f = eta @ theta[1:] + theta[0]
     centred = v - v.mean()
     scale = float(centred @ (f - f.mean()) / (centred @ centred))
@@ -350,22 +370,35 @@ def _result(method: str, estimate: HammersteinEstimate, order: int, extra: dict,
 def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -> IdentificationResult:
     """``cls-arx`` / ``cls-markov``: CLS with the options' order, delay, mu (default 30),
     tau_max (default ``default_tau_max``) and poly, or a piecewise-linear F on the options'
-    partition when it is given (``piecewise_linear_step``)."""
+    partition when it is given (``piecewise_linear_step``). With ``options.reference`` (closed
+    loop) the correlations are with the reference and step 2 is an IV solve (``instrumental``)."""
     mu = _mu(structure, options.mu)
     tau_max = default_tau_max(options.order, mu) if options.tau_max is None else options.tau_max
-    phi_vv, phi_yv = correlation_functions(v, y, tau_max)
-    return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure)
+    reference = check_reference(options.reference, np.size(v))
+    if reference is None:
+        phi_vv, phi_yv = correlation_functions(v, y, tau_max)
+        return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure)
+    try:
+        phi_vr, phi_yr = (cross_correlation(reference, x, tau_max) for x in _check_record(v, y))
+    except ValueError as exc:
+        raise IdentificationError(f"tau_max {tau_max}: {exc}") from None
+    return cls_from_correlations(phi_vr, phi_yr, v, y, options, structure, instrument=reference_part(v, reference))
 
 
 def cls_from_correlations(
-    phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, options, structure: str = "arx"
+    phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, options, structure: str = "arx",
+    instrument: np.ndarray | None = None,
 ) -> IdentificationResult:
     """``identify_cls`` on given correlation functions (tau_max = (len - 1) / 2), e.g. the
-    streaming engine's window sums; (v, y) is the raw window for step 2."""
+    streaming engine's window sums; (v, y) is the raw window for step 2 (``instrument``: see
+    ``correlation_least_squares_steps``)."""
     mu = _mu(structure, options.mu)
     estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
-                                               options.partition)
-    extra = {"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
+                                               options.partition, instrument)
+    extra = ({"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
+             | ({"instrument": "reference"} if instrument is not None else {}))
+    if instrument is not None:  # the bounds' influences are those of the correlations with v, not with r
+        return _result(f"cls-{structure}", estimate, options.order, extra)
     partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
     uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
                                                   *_step_two_map(np.asarray(v, dtype=float), options.poly, partition)))

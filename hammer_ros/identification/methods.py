@@ -29,6 +29,7 @@ class IdentifyOptions:
     tau_max: int | None = None
     harmonic: tuple[Any, Any] | None = None  # (v, y) of the single-harmonic record
     feedback_partition: tuple[float, ...] | None = None  # PLLS: breakpoints d of the feedback map h(y)
+    reference: np.ndarray | None = None  # closed loop: the external reference r, the instrument (``instrumental``)
 
 
 METHODS: dict[str, tuple[str, str, dict]] = {
@@ -54,6 +55,7 @@ METHODS: dict[str, tuple[str, str, dict]] = {
 # methods whose bounds come from subseries; semiparametric: poles and zeros only (its map comes from
 # the single-harmonic record, which is not resampled)
 SUBSERIES_METHODS = ("bf-hammerstein", "bf-feedforward", "semiparametric")
+REFERENCE_METHODS = ("cls-arx", "cls-markov", "plls-hammerstein")  # the ones with an instrumented form
 
 
 def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions) -> IdentificationResult:
@@ -62,6 +64,8 @@ def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions
         module_name, function_name, kwargs = METHODS[method]
     except KeyError:
         raise UsageError(f"--method: unknown method {method!r} (choose from {', '.join(METHODS)})") from None
+    if options.reference is not None and method not in REFERENCE_METHODS:
+        raise UsageError(f"--reference: not for {method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
     module = importlib.import_module(f"{__package__}.{module_name}")
     v, y, function = np.asarray(v, float), np.asarray(y, float), getattr(module, function_name)
     result = function(v, y, options, **kwargs)

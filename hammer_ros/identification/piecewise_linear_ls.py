@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import IdentificationError, UsageError
+from .instrumental import check_reference, reference_part, solve_instrumental
 from .linear import LinearModel
 from .methods import IdentifyOptions
 from .regression import Regression, build_regression, lagged_columns, solve_least_squares
@@ -302,12 +303,17 @@ def plls(
     gamma: float = 0.0,
     instrumental: bool = False,
     uncertainty: bool = False,
+    reference: np.ndarray | None = None,
 ) -> PllsEstimate:
     """PLLS of paper 001, sec. 4 (the numbered steps at the end of 4.1, 4.2 and 4.3).
 
     ``instrumental`` (Hammerstein only): least squares, then ``INSTRUMENT_PASSES`` passes of
     instrumental variables (``_instrumental_step``), consistent under output noise.
     ``uncertainty``: the estimate carries its ``uncertainty.Uncertainty`` (``plls_uncertainty``).
+    ``reference`` (closed loop, Hammerstein structure only): eq. 33 solved by instrumental
+    variables (``_instrumental_plls``): a first IV pass with instruments [-y_r lags, eta(u_r) lags, 1]
+    (u_r, y_r the reference's parts of u and y), then the refined pass of Laurain, Gilson and
+    Garnier (CDC 2009) with y_r replaced by the first estimate's output simulated on u_r (no bounds).
 
     ``partition`` c (input map f) and ``feedback_partition`` d (feedback map h) default to
     ``default_partition`` of u and y; the primary indices r and s to ``default_primary_index``.
@@ -333,16 +339,17 @@ def plls(
         zeta = point_slope_basis(y, d, s)
 
     reg, phi = _regression(y, eta if has_input_map else u, order, delay, zeta)
+    if reference is not None:
+        if structure != "hammerstein":
+            raise UsageError("--reference: only for plls-hammerstein among the PLLS structures")
+        return _instrumental_plls(u, y, reg, phi, c, r, delay, beta, reference)
     n, n_b = reg.output_lags.size, reg.input_lags.size
 
     def blocks(theta: np.ndarray) -> PllsEstimate:
         """The blocks from the lifted parameters theta~ (eqs. 32-38, 53, 60-62, 70-71)."""
-        offset = theta[-1]
         if structure == "hammerstein":  # eqs. 32-38
-            a = theta[:n]
-            b, mu = rank_one_factors(reg.split(theta[:-1])[1], beta, a)
-            kappa = offset / np.sum(b)  # eq. 38
-            return _estimate(a, b, delay, (c, r, mu, kappa), None)
+            return _hammerstein_factors(theta, reg, c, r, delay, beta)
+        offset = theta[-1]
         theta_a = theta[: n * zeta.shape[1]].reshape(n, zeta.shape[1])
         theta_in = theta[n * zeta.shape[1] : -1].reshape(n_b, -1)
         if structure == "feedback":  # eqs. 53, 60-62
@@ -407,6 +414,33 @@ def plls_uncertainty(blocks, theta: np.ndarray, covariance: np.ndarray, instrume
     return Uncertainty(poles_std, zeros_std, None, None if pack is None else map_covariance, how)
 
 
+def _hammerstein_factors(theta: np.ndarray, reg: Regression, c, r, delay: int, beta) -> PllsEstimate:
+    """The blocks of the Hammerstein theta~ (eqs. 32-38)."""
+    a = theta[: reg.output_lags.size]
+    b, mu = rank_one_factors(reg.split(theta[:-1])[1], beta, a)
+    return _estimate(a, b, delay, (c, r, mu, theta[-1] / np.sum(b)), None)  # kappa: eq. 38
+
+
+def _instrumental_plls(u, y, reg: Regression, phi: np.ndarray, c, r, delay: int, beta,
+                       reference: np.ndarray) -> PllsEstimate:
+    """PLLS-Hammerstein by (refined) instrumental variables, see ``plls``."""
+    u_r = reference_part(u, reference)
+    input_instruments = lagged_columns(point_slope_basis(u_r, c, r), reg.input_lags, reg.rows)
+    n = reg.output_lags.size
+
+    def instruments(output: np.ndarray) -> np.ndarray:
+        return np.column_stack([-lagged_columns(output, reg.output_lags, reg.rows), input_instruments,
+                                np.ones(reg.rows.size)])
+    estimate = _hammerstein_factors(solve_instrumental(phi, reg.target, instruments(reference_part(y, reference))),
+                                    reg, c, r, delay, beta)
+    if estimate.linear.is_stable():  # refined: the noise-free output of the first estimate
+        simulated = simulate_hammerstein(u_r, estimate.nonlinearity, estimate.linear)
+        if np.all(np.isfinite(simulated)) and np.std(simulated[n:]) > 0:
+            estimate = _hammerstein_factors(solve_instrumental(phi, reg.target, instruments(simulated)),
+                                            reg, c, r, delay, beta)
+    return estimate
+
+
 def _on_output_lags(b: np.ndarray, order: int) -> np.ndarray:
     """b_delay..b_n padded with zeros to lags 1..n."""
     return np.concatenate([np.zeros(order - b.size), b])
@@ -438,7 +472,8 @@ def identify_plls(
     feedback map h (for ``feedback``, whose only map is h, ``options.partition`` is accepted as d
     too). Unset partitions: ``default_partition`` of the data (10 equally spaced breakpoints).
     ``beta``, ``alpha``, ``gamma``: see the module docstring. Hammerstein: least squares, then instrumental
-    variables (``plls(instrumental=True)``); every structure reports its ``uncertainty``.
+    variables (``plls(instrumental=True)``); every structure reports its ``uncertainty`` (with a reference:
+    the refined IV of ``plls(reference=...)``, without bounds).
     """
     given = None if options.partition is None else np.asarray(options.partition, dtype=float)
     feedback_given = options.feedback_partition
@@ -451,7 +486,8 @@ def identify_plls(
     est = plls(
         v, y, options.order, options.delay, structure,
         partition=partition, feedback_partition=feedback_given, beta=beta, alpha=alpha, gamma=gamma,
-        instrumental=True, uncertainty=True,
+        instrumental=options.reference is None, uncertainty=options.reference is None,
+        reference=check_reference(options.reference, np.size(v)),
     )
     if est.feedback is None:
         def simulate(x: np.ndarray) -> np.ndarray:
@@ -464,7 +500,8 @@ def identify_plls(
             return simulate_hammerstein_feedback(x, est.nonlinearity, est.feedback, est.linear)
 
     details = {"structure": structure, "beta": beta, "alpha": alpha, "gamma": gamma,
-               "estimator": "instrumental_variables" if structure == "hammerstein" else "least_squares"}
+               "estimator": ("instrumental_variables (reference)" if options.reference is not None
+                             else "instrumental_variables" if structure == "hammerstein" else "least_squares")}
     if est.nonlinearity is not None:
         details.update(partition=est.nonlinearity.breakpoints.tolist(), primary_index=est.primary_index)
     if est.feedback is not None:

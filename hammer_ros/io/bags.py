@@ -22,6 +22,7 @@ import functools
 import io
 import json
 import os
+import re
 import struct
 import sys
 import zlib
@@ -43,9 +44,9 @@ SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
 SCHEMA_SEPARATOR = "=" * 80
 # msg_config keys that are not engine settings
 TOPIC_KEYS = ("excitation_topic", "excitation_type", "excitation_field", "response_topic", "response_type",
-              "response_field")
+              "response_field", "reference_topic", "reference_type", "reference_field")
 OTHER_KEYS = ("solve_rate", "frame_id", "use_sim_time", "qos_depth", "max_pending", "output_mcap", "foxglove_port",
-              "foxglove_host")
+              "foxglove_host", "channels")
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
 
 
@@ -125,20 +126,99 @@ def engine_config_from_params(params: dict[str, Any], source: str = "config",
 def stream_specs(input_spec: str | None, output_spec: str | None, params: dict[str, Any] | None,
                  source: str = "config") -> tuple[StreamSpec, StreamSpec]:
     """(excitation, response) from --input/--output, falling back to the config's topics/fields."""
+    return (stream_spec("--input", "excitation", input_spec, params, source),
+            stream_spec("--output", "response", output_spec, params, source))
+
+
+def stream_spec(option: str, role: str, text: str | None, params: dict[str, Any] | None, source: str = "config",
+                required: bool = True) -> StreamSpec | None:
+    """One stream from its option (``/topic:field``), else the config's ``<role>_topic`` and
+    ``<role>_field`` (``_type`` optional); without either: a UsageError, or None when not ``required``."""
+    if text:
+        return parse_stream_spec(text, option)
     params = params or {}
-    specs = []
-    for option, role, text in (("--input", "excitation", input_spec), ("--output", "response", output_spec)):
-        if text:
-            specs.append(parse_stream_spec(text, option))
-            continue
-        topic, field = params.get(f"{role}_topic"), params.get(f"{role}_field")
-        if not topic or not field:
+    topic, field = params.get(f"{role}_topic"), params.get(f"{role}_field")
+    if not topic or not field:
+        if required or topic or field:
             raise UsageError(f"{option}: give /topic:field or a --config with {role}_topic and {role}_field")
-        try:
-            specs.append(StreamSpec(str(topic), parse_field_path(str(field)), params.get(f"{role}_type")))
-        except UsageError as exc:
-            raise UsageError(f"{source}: {role}_field: {exc}") from None
-    return specs[0], specs[1]
+        return None
+    try:
+        return StreamSpec(str(topic), parse_field_path(str(field)), params.get(f"{role}_type"))
+    except UsageError as exc:
+        raise UsageError(f"{source}: {role}_field: {exc}") from None
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One (excitation, response) pair of a ``channels`` list: its name, streams and parameters
+    (the file's top-level parameters with the channel's own overrides)."""
+
+    name: str
+    excitation: StreamSpec
+    response: StreamSpec
+    params: dict
+
+
+_CHANNEL_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def config_channels(params: dict[str, Any], source: str = "config") -> list[Channel]:
+    """The channels of a msg_config / params file, [] without a ``channels`` list. Two forms:
+    ``channels: [shoulder, elbow]`` with each channel's parameters under its name
+    (``shoulder: {response_field: "velocity[shoulder_joint]", order: 2}``: the form a ROS 2
+    params file can hold, nested names becoming ``shoulder.response_field``), or a list of
+    mappings each with a ``name``. The top-level parameters are every channel's defaults. A
+    name that is not a ROS name token, a duplicate, or a bad parameter is a UsageError naming
+    the file and the channel."""
+    listed = params.get("channels")
+    if listed is None or listed == []:
+        return []
+    if not isinstance(listed, list) or not (all(isinstance(c, str) for c in listed)
+                                            or all(isinstance(c, dict) for c in listed)):
+        raise UsageError(f"{source}: channels: expected a list of channel names (each with its parameters under "
+                         "its name) or a list of mappings with a name")
+    names = [c if isinstance(c, str) else c.get("name") for c in listed]
+    for index, name in enumerate(names):
+        if not isinstance(name, str) or not _CHANNEL_NAME.match(name):
+            raise UsageError(f"{source}: channels[{index}]: name {name!r} must be a name like shoulder_pan "
+                             "(letters, digits, _; a letter first)")
+        if name in names[:index]:
+            raise UsageError(f"{source}: channels: duplicate channel {name!r}")
+    stray = next((k for k, v in params.items() if isinstance(v, dict) and k not in names), None)
+    if stray is not None:
+        raise UsageError(f"{source}: {stray}: parameters of a channel {stray!r} that is not in channels "
+                         f"({', '.join(names)})")
+    entries = [{"name": c, **_channel_section(params, c, source)} if isinstance(c, str) else c for c in listed]
+    named = {c for c in listed if isinstance(c, str)}
+    base = {k: v for k, v in params.items() if k != "channels" and str(k).split(".", 1)[0] not in named}
+    channels: list[Channel] = []
+    for entry in entries:
+        name = entry["name"]
+        merged = {**base, **{k: v for k, v in entry.items() if k != "name"}}
+        where = f"{source}: channel {name!r}"
+        engine_config_from_params(merged, where)  # unknown or bad parameters, named
+        excitation, response = stream_specs(None, None, merged, where)
+        channels.append(Channel(name, excitation, response, merged))
+    return channels
+
+
+def single_channel_params(params: dict[str, Any], source: str, why: str) -> dict[str, Any]:
+    """``params`` of a file without channels, the parameters of its only channel, or a UsageError
+    (naming the file, its channels and ``why``) for several."""
+    channels = config_channels(params, source)
+    if len(channels) > 1:
+        raise UsageError(f"--config: {source} has {len(channels)} channels ({', '.join(c.name for c in channels)}); "
+                         f"{why}")
+    return channels[0].params if channels else params
+
+
+def _channel_section(params: dict[str, Any], name: str, source: str) -> dict[str, Any]:
+    """The parameters under a channel's name (nested, or ``name.key`` flattened); {} for none."""
+    section = params.get(name, {})
+    if not isinstance(section, dict):
+        raise UsageError(f"{source}: {name}: the parameters of channel {name!r} must be a mapping")
+    dotted = {k.split(".", 1)[1]: v for k, v in params.items() if isinstance(k, str) and k.startswith(f"{name}.")}
+    return {**section, **dotted}
 
 
 # ------------------------------------------------------------------------------- reading
@@ -584,7 +664,7 @@ def check_fields(path: str | Path, specs: tuple[StreamSpec, ...]) -> None:
 class BagSample:
     """The samples one message contributes to a stream."""
 
-    stream: str  # "excitation" or "response"
+    stream: Any  # "excitation" or "response" (or the role given to ``iter_role_samples``)
     stamp: float  # header stamp or log time (s): the time of the LAST sample
     values: np.ndarray | float  # a float: one sample
     log_time: int  # ns
@@ -602,10 +682,18 @@ def iter_bag_samples(path: str | Path, excitation: StreamSpec, response: StreamS
     ``ros2msg`` schema (``cdr.schema_extractor``: no message is built, ~10x less time per
     100-double message than decoding it); a message it cannot read (or a schema it cannot parse)
     is decoded in full, which names what is wrong exactly as before."""
-    stats = stats if stats is not None else BagReadStats()
     check_topics(path, (excitation, response))
-    roles: dict[str, list[tuple[str, StreamSpec]]] = {}
-    for role, spec in (("excitation", excitation), ("response", response)):
+    return iter_role_samples(path, [("excitation", excitation), ("response", response)], stats)
+
+
+def iter_role_samples(path: str | Path, specs: list[tuple[Any, StreamSpec]],
+                      stats: BagReadStats | None = None) -> Iterator[BagSample]:
+    """``iter_bag_samples`` for any number of (role, spec) pairs (the roles of several channels:
+    ``BagSample.stream`` is the role): each topic is read once per message, and every spec on
+    it is read from that one message."""
+    stats = stats if stats is not None else BagReadStats()
+    roles: dict[str, list[tuple[Any, StreamSpec]]] = {}
+    for role, spec in specs:
         roles.setdefault(spec.topic, []).append((role, spec))
     readers: dict[tuple[str, int], list | None] = {}
 
@@ -675,15 +763,37 @@ def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSp
 
 
 def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec: str | None = None,
-                    config: str | Path | None = None) -> Record:
+                    config: str | Path | None = None, reference_spec: str | None = None) -> Record:
     """All aligned samples of a bag as a Record (the streaming engine's alignment, without the
     window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
     gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
-    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window)."""
+    (a longer bag is a UsageError pointing to ``replay``, which keeps only a window).
+
+    ``reference_spec`` (``--reference /topic:field``, else the config's ``reference_topic`` and
+    ``reference_field``; a closed loop's reference): aligned with
+    the excitation the same way, then read at the record's sample times (linear interpolation;
+    on the common grid these are its own samples)."""
     forget_warnings()
     params = load_msg_config(config) if config else {}
+    params = single_channel_params(params, str(config), "identify and diagnose read one pair (--input/--output, "
+                                   "or replay for every channel)")
     engine_config = engine_config_from_params(params, str(config or "config"))
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
+    reference = stream_spec("--reference", "reference", reference_spec, params, str(config or "config"),
+                            required=False)
+    t, v, y = _aligned_samples(path, excitation, response, engine_config)
+    if reference is None:
+        return Record(v, y, t, str(path))
+    try:
+        t_r, _, r = _aligned_samples(path, excitation, reference, engine_config)
+    except UsageError as exc:
+        raise UsageError(f"--reference: {exc}") from None
+    return Record(v, y, t, str(path), np.interp(t, t_r, r))
+
+
+def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
+                     engine_config: EngineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, v, y): every aligned sample of the two streams (``load_bag_record``)."""
     check_topics(path, (excitation, response))
     check_fields(path, (excitation, response))
     chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -705,7 +815,7 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     if stats.gaps:
         print(f"hammer-ros: {path}: {stats.gaps} gap(s) in the streams; segments concatenated", file=sys.stderr)
     t, v, y = (np.concatenate(parts) for parts in zip(*chunks))
-    return Record(v, y, t, str(path))
+    return t, v, y
 
 
 # ------------------------------------------------------------------------------- writing

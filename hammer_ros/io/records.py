@@ -14,12 +14,14 @@ from ..errors import UsageError
 
 @dataclass(frozen=True, eq=False)
 class Record:
-    """An input/output record: excitation v, response y, optional time stamps t (s)."""
+    """An input/output record: excitation v, response y, optional time stamps t (s) and the
+    external reference r of a closed loop (``--reference``, None when not given)."""
 
     v: np.ndarray
     y: np.ndarray
     t: np.ndarray | None = None
     source: str = ""
+    r: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.v.size
@@ -29,7 +31,8 @@ class Record:
         cut = int(round(fraction * len(self)))
         part = slice(0, cut), slice(cut, None)
         return tuple(
-            Record(self.v[s], self.y[s], None if self.t is None else self.t[s], self.source) for s in part
+            Record(self.v[s], self.y[s], None if self.t is None else self.t[s], self.source,
+                   None if self.r is None else self.r[s]) for s in part
         )
 
 
@@ -126,31 +129,36 @@ def _delimiter(path: Path) -> str:
     return next((d for d in (";", "\t") if d in header), ",")
 
 
-def load_record(path: str | Path, input_name: str = "u", output_name: str = "y", time_name: str = "t") -> Record:
-    """The (v, y[, t]) record in a CSV/NPZ file; a missing column is a UsageError naming it."""
-    for option, name in (("--input", input_name), ("--output", output_name)):
+def load_record(path: str | Path, input_name: str = "u", output_name: str = "y", time_name: str = "t",
+                reference_name: str | None = None) -> Record:
+    """The (v, y[, t][, r]) record in a CSV/NPZ file; a missing column is a UsageError naming it."""
+    named = (("--input", input_name), ("--output", output_name)) + (
+        (("--reference", reference_name),) if reference_name else ())
+    for option, name in named:
         if name.startswith("/") and ":" in name:
             raise UsageError(f"{option}: {name!r} is a bag topic:field, but {path} is a CSV/NPZ file (give a column)")
-    columns = load_columns(path, (input_name, output_name, time_name))
-    for option, name in (("--input", input_name), ("--output", output_name)):
+    columns = load_columns(path, (input_name, output_name, time_name) + ((reference_name,) if reference_name else ()))
+    for option, name in named:
         if name not in columns:
             available = load_columns_names(path)
             raise UsageError(
                 f"{path}: no column {name!r} (set {option}; columns are {', '.join(available) or 'none'})"
             )
     v, y = columns[input_name], columns[output_name]
-    if v.size != y.size:
-        raise UsageError(f"{path}: columns {input_name!r} and {output_name!r} differ in length")
+    r = columns[reference_name] if reference_name else None
+    if v.size != y.size or (r is not None and r.size != v.size):
+        raise UsageError(f"{path}: columns {input_name!r} and {output_name!r}"
+                         f"{f' and {reference_name!r}' if r is not None else ''} differ in length")
     if v.size == 0:
         raise UsageError(f"{path}: no samples")
-    for name, x in ((input_name, v), (output_name, y)):
+    for name, x in ((input_name, v), (output_name, y)) + (((reference_name, r),) if r is not None else ()):
         bad = ~np.isfinite(x) | (np.abs(x) > MAX_ABS_SAMPLE)
         if np.any(bad):
             k = int(np.flatnonzero(bad)[0])
             raise UsageError(f"{path}: column {name!r} has a non-finite or out-of-range value ({x[k]:g}) at sample {k} "
                              f"(|x| <= {MAX_ABS_SAMPLE:g})")
     t = columns.get(time_name)
-    return Record(v, y, t, str(path))
+    return Record(v, y, t, str(path), r)
 
 
 def load_columns_names(path: str | Path) -> list[str]:

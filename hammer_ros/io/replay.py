@@ -53,7 +53,7 @@ from .bags import (
     bag_message_counts,
     check_fields,
     check_topics,
-    iter_bag_samples,
+    iter_role_samples,
 )
 
 NODE_NAME = "hammer_ros"
@@ -135,11 +135,19 @@ class ReplayResult:
 
 
 def check_replay_input(bag: str | Path, excitation: StreamSpec, response: StreamSpec,
-                       out: str | Path | None = None, dashboard_out: str | Path | None = None) -> None:
-    """Every user mistake about the bag before any output: its topics, their fields, and an
-    ``out`` or ``dashboard_out`` that would overwrite the bag or each other (UsageError)."""
+                       out: str | Path | None = None, dashboard_out: str | Path | None = None,
+                       reference: StreamSpec | None = None) -> None:
+    """Every user mistake about the bag before any output: its topics, their fields (of the
+    ``reference`` too, named as --reference), and an ``out`` or ``dashboard_out`` that would
+    overwrite the bag or each other (UsageError)."""
     check_topics(bag, (excitation, response))
     check_fields(bag, (excitation, response))
+    if reference is not None:
+        try:
+            check_topics(bag, (reference,))
+            check_fields(bag, (reference,))
+        except UsageError as exc:
+            raise UsageError(f"--reference: {exc}") from None
     for option, path in (("--out", out), ("--dashboard-out", dashboard_out)):
         if path and any(Path(path).resolve() == f.resolve() for f in bag_files(bag)):
             raise UsageError(f"{option}: {path} is the bag being replayed (it would be overwritten)")
@@ -153,7 +161,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                progress: Callable[[int, int, int, bool], None] | None = None,
                node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False,
                solver: SolverProcess | None = None, dashboard_out: str | Path | None = None,
-               diagnose: bool = False, diagnosis_window: int = DIAGNOSIS_WINDOW) -> ReplayResult:
+               diagnose: bool = False, diagnosis_window: int = DIAGNOSIS_WINDOW,
+               reference: StreamSpec | None = None) -> ReplayResult:
     """Replay ``bag`` (checked by ``check_replay_input``) through a new engine.
 
     ``out``: write every result message into this MCAP (with ``atomic``: under a temporary name,
@@ -163,12 +172,15 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
     ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
     ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads);
-    ``solver``: solve there, overlapping the reading (module docstring).
+    ``solver``: solve there, overlapping the reading (module docstring); ``reference``: a closed
+    loop's reference (checked like the streams), the instrument of every solve (``add_reference``;
+    a message of n > 1 samples is placed at the grid rate once it is known).
     """
     counts = bag_message_counts(bag)
-    total = sum(counts.get(topic, 0) for topic in {excitation.topic, response.topic})
+    streams = [("excitation", excitation), ("response", response)] + ([("reference", reference)] if reference else [])
+    total = sum(counts.get(topic, 0) for topic in {spec.topic for _, spec in streams})
     read = BagReadStats()
-    engine = StreamingEngine(config)
+    engine = StreamingEngine(config, reference=reference is not None)
     last_ok: SolveOutcome | None = None
     last: SolveOutcome | None = None
     target = (Path(out).with_name(f".{Path(out).stem}.partial.mcap") if atomic else Path(out)) if out else None
@@ -240,7 +252,11 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     diagnosis = None
     complete = False
     try:
-        for sample in iter_bag_samples(bag, excitation, response, read):
+        check_topics(bag, tuple(spec for _, spec in streams))
+        for sample in iter_role_samples(bag, streams, read):
+            if sample.stream == "reference":
+                add_reference(engine, sample.stamp, sample.values)
+                continue
             if bag_start is None:
                 bag_start, next_solve = sample.stamp, sample.stamp + 1.0 / solve_rate
             if publisher and rate:  # pace: bag time / rate = wall time since the start
@@ -304,8 +320,104 @@ def diagnose_final(engine: StreamingEngine, config: EngineConfig, newest: int) -
     return doc
 
 
+def add_reference(engine: StreamingEngine, stamp: float, values: np.ndarray | float) -> None:
+    """One reference message's samples into ``engine`` (batch convention: the last at the stamp,
+    spacing 1 / the grid rate; a batch before the rate is known is left out)."""
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    rate = engine.sample_rate
+    if values.size == 1 or rate:
+        engine.add_reference(stamp - np.arange(values.size - 1, -1, -1) / (rate or 1.0), values)
+
+
 def bag_values(read: BagReadStats) -> list[dict]:
     """Diagnostics values of what reading the bag skipped so far."""
     values = {"bag_damage": len(read.damage), "bag_oversized_messages": read.oversized,
               "bag_undecodable_messages": read.undecodable, "bag_field_errors": sum(read.field_errors.values())}
     return [{"key": k, "value": str(v)} for k, v in values.items()]
+
+
+@dataclass(frozen=True)
+class ChannelReplay:
+    """One channel of ``replay_channels``: its name, streams, engine config and solve rate."""
+
+    name: str
+    excitation: StreamSpec
+    response: StreamSpec
+    config: EngineConfig
+    solve_rate: float
+
+
+def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id: str = "",
+                    out: str | Path | None = None, node_name: str = NODE_NAME,
+                    progress: Callable[[int, int, int, bool], None] | None = None) -> dict[str, ReplayResult]:
+    """Several channels of one bag in one pass (every channel checked by ``check_replay_input``):
+    each topic is read once per message and its samples go to the engine of every channel that
+    uses them (``iter_role_samples``); each channel solves every 1 / its solve_rate seconds of
+    bag time and at the end, in process. ``out``: the results of channel NAME under
+    ``/<node_name>/NAME/...`` and its status in /diagnostics (hardware_id ``<node_name>/NAME``).
+    Returns each channel's ReplayResult (``document()`` = its ``replay --json``)."""
+    topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
+    total = sum(bag_message_counts(bag).get(topic, 0) for topic in topics)
+    read = BagReadStats()
+    engines = [StreamingEngine(c.config) for c in channels]
+    outcomes: list[list[SolveOutcome | None]] = [[None, None] for _ in channels]  # (last good, last)
+    next_solve: list[float | None] = [None] * len(channels)
+    writer = ResultWriter(out) if out else None
+    started = time.perf_counter()
+    done, bag_start, bag_time = 0, None, float("nan")
+
+    def solve(index: int, bag_time: float) -> None:
+        engine = engines[index]
+        engine.flush()
+        outcome = engine.solve()
+        last_ok = outcome if outcome.ok else outcomes[index][0]
+        outcomes[index] = [last_ok, outcome]
+        if writer is None:
+            return
+        stamp = next((s for s in (outcome.stamp, bag_time) if math.isfinite(s)), 0.0)
+        name = f"{node_name}/{channels[index].name}"
+        messages = result_messages(outcome, stamp, frame_id)
+        if not outcome.ok and last_ok is not None:
+            messages.append(stale_model_message(last_ok, outcome))
+        diagnostics = diagnostics_message(engine.stats, outcome, stamp, name)
+        diagnostics["status"][0]["values"].extend(bag_values(read))
+        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
+        record_results(writer, messages, stamp, name)
+
+    roles = [((i, stream), spec) for i, c in enumerate(channels)
+             for stream, spec in (("excitation", c.excitation), ("response", c.response))]
+    first_role: dict[str, tuple] = {}  # a message yields one sample per role on its topic: count its first
+    for role, spec in roles:
+        first_role.setdefault(spec.topic, role)
+    firsts = set(first_role.values())
+    try:
+        for sample in iter_role_samples(bag, roles, read):
+            index, stream = sample.stream
+            if bag_start is None:
+                bag_start = sample.stamp
+                next_solve = [sample.stamp + 1.0 / c.solve_rate for c in channels]
+            for i, due in enumerate(next_solve):
+                if sample.stamp >= due:
+                    solve(i, sample.stamp)
+                    rate = channels[i].solve_rate
+                    next_solve[i] = due + math.ceil((sample.stamp - due) * rate + 1e-9) / rate
+            engine = engines[index]
+            engine.add_message(stream, sample.stamp, sample.values, flush=False)
+            if engine.buffered >= FLUSH_SAMPLES:
+                engine.flush()
+            bag_time = sample.stamp
+            done += sample.stream in firsts
+            if progress:
+                progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)
+        for i in range(len(channels)):
+            solve(i, bag_time)
+        if progress:
+            progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), True)
+    finally:
+        if writer:
+            writer.close()
+    wall = time.perf_counter() - started
+    first = float(bag_start) if bag_start is not None else float("nan")
+    return {c.name: ReplayResult(str(bag), outcomes[i][0], outcomes[i][1], engines[i].stats, read, done, total,
+                                 wall, writer.count if writer else 0, first, bag_time)
+            for i, c in enumerate(channels)}

@@ -18,7 +18,9 @@ by ``definition_fields``), as field name -> IDL type (``double``, ``sequence<dou
 ``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` the
 samples of ``field_path.extract_samples`` (a float for one, else a float64 array) and ``stamp`` the
 header stamp in seconds (0.0 for none), or None when the path cannot be read this way
-(wide strings, a non-numeric target): the caller then subscribes to messages as usual. A
+(wide strings, a non-numeric target): the caller then subscribes to messages as usual.
+``field[NAME]`` reads the ``name`` strings of the same message too and picks the element at
+NAME's index (``field_path`` semantics: MissingName when a message lacks it). A
 payload that is short or whose counts lie raises FieldError naming the field.
 ``extract_batch(extract, messages)`` reads the whole-array (or scalar) field of many messages
 without a header at once, when they share one layout (the node's ingest of a flush).
@@ -34,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .field_path import FieldError, FieldPath
+from .field_path import NAME_FIELD, FieldError, FieldPath, named_index
 
 PRIMITIVES = {  # IDL type -> (struct code, size)
     "double": ("d", 8), "float": ("f", 4), "int64": ("q", 8), "uint64": ("Q", 8), "int32": ("i", 4),
@@ -268,18 +270,62 @@ def schema_extractor(name: str, text: str, path: FieldPath) -> Extract | None:
         return None
 
 
+def _strings(data: bytes, pos: int, order: str, count: int) -> list[bytes]:
+    """``count`` CDR strings at ``pos`` (-1: a sequence, its count first), without their NULs."""
+    if count < 0:
+        count, pos = _u32(data, pos, order)
+    out = []
+    for _ in range(count):
+        n, pos = _u32(data, pos, order)
+        out.append(bytes(data[HEADER + pos : HEADER + pos + max(n - 1, 0)]))
+        pos += n
+    return out
+
+
+def _named_reader(fields: dict[str, str], step, outer: list[Skip], path: FieldPath, nested: Fields) -> Callable:
+    """The reader of ``field[NAME]``: the whole array, then its element at the index of NAME in
+    the sibling ``name`` strings (``field_path.named_index``), both read from the message."""
+    if NAME_FIELD not in fields or len(step.indices) != 1 or _kind(fields[step.name], nested)[2] is None:
+        raise UnsupportedLayout(f"{step.name}[{step.element_name}]")
+    kind, _, count = _kind(fields[NAME_FIELD], nested)
+    if kind != "string" or count is None:
+        raise UnsupportedLayout(fields[NAME_FIELD])
+    names = list(fields)
+    to_names = outer + [_skipper(fields[n], nested) for n in names[: names.index(NAME_FIELD)]]
+    whole = _reader(fields[step.name], (), path, nested)
+    element = step.element_name.encode()
+
+    def named(data: bytes, pos: int, order: str) -> float:
+        values = whole(data, pos, order)
+        at = 0
+        for skip in to_names:
+            at = skip(data, at, order)
+        found = _strings(data, at, order, count)
+        if element not in found:
+            named_index([n.decode(errors="replace") for n in found], step.element_name, path)
+        index = found.index(element)
+        if not 0 <= index < np.size(values):
+            raise FieldError(f"field {path.text!r}: {step.element_name!r} is name {index}, "
+                             f"{step.name!r} has {np.size(values)} elements")
+        return float(values[index])
+    return named
+
+
 def _extractor(fields: dict[str, str], path: FieldPath, nested: Fields, whole: bool) -> Extract | None:
     root = fields
     skips: list[Skip] = []  # the fields before the path's field, level by level
     for i, step in enumerate(path.steps):
         if step.name not in fields:
             return None
+        outer = list(skips)
         names = list(fields)
         skips += [_skipper(fields[n], nested) for n in names[: names.index(step.name)]]
         if i < len(path.steps) - 1:
             kind, fields, count = _kind(fields[step.name], nested)
             if kind != "message" or count is not None or step.indices:
                 return None
+        elif step.element_name is not None:
+            read = _named_reader(fields, step, outer, path, nested)
         else:
             read = _reader(fields[step.name], step.indices, path, nested)
     if "header" in root and (next(iter(root)) != "header" or root["header"] != "std_msgs/Header"):

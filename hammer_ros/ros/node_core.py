@@ -57,8 +57,10 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data  # noqa: E402
 from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E402
 
+from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST  # noqa: E402
+from ..diagnosis.closed_loop import WARNING as CLOSED_LOOP_WARNING  # noqa: E402
 from ..errors import UsageError  # noqa: E402
-from ..identification.methods import METHODS  # noqa: E402
+from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
@@ -66,7 +68,7 @@ from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, so
 from ..streaming.solver_process import SolverProcess, diagnose_window  # noqa: E402
 from .cdr import extract_batch, raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
-from .field_path import FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
+from .field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
 from .outputs import (  # noqa: E402
     OUTPUT_TOPICS,
     diagnosis_message,
@@ -85,6 +87,7 @@ FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
 WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``activate``)
 MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
+REFERENCE = "reference"  # the optional third input: a closed loop's reference (``reference_topic``)
 STREAMING_METHODS = tuple(m for m in METHODS if m != "semiparametric")
 _TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
@@ -110,6 +113,10 @@ PARAMETERS: dict[str, Spec] = {
     "response_topic": Spec("/response", "str", "topic of the response (sensor) y"),
     "response_type": Spec("std_msgs/msg/Float64", "str", "message type of response_topic"),
     "response_field": Spec("data", "str", "field path of y"),
+    "reference_topic": Spec("", "str", "topic of a closed loop's external reference r, the instrument of every "
+                            f"solve ({', '.join(REFERENCE_METHODS)}); '' = none", read_only=True),
+    "reference_type": Spec("std_msgs/msg/Float64", "str", "message type of reference_topic", read_only=True),
+    "reference_field": Spec("data", "str", "field path of r", read_only=True),
     "sample_rate": Spec(0.0, "float", "Hz of the common sample grid; 0 = infer", 0.0, 1e8),
     "window": Spec(4000, "int", "W: samples in the sliding window", 16, MAX_WINDOW),
     "forgetting": Spec(1.0, "float", "1 = exact sliding window; < 1 = exponential forgetting factor", 0.0, 1.0),
@@ -186,6 +193,9 @@ def check_field(cls, path: FieldPath) -> None:
         if step.name not in names:
             known = f" (fields: {', '.join(names)})" if names else ""
             raise FieldError(f"field {path.text!r}: no field {step.name!r} in {type(value).__name__}{known}")
+        if step.element_name is not None and NAME_FIELD not in names:
+            raise FieldError(f"field {path.text!r}: [{step.element_name}] is looked up in a sibling "
+                             f"{NAME_FIELD!r} array, and {type(value).__name__} has none")
         value = getattr(value, step.name)
         if step.indices:
             return
@@ -365,9 +375,10 @@ class IdentificationCore:
         self.diagnoser_lost = ""  # why it is gone, when it went
         self._writer: ResultWriter | None = None
         self._outputs: dict[str, Any] = {}
-        self.inputs = {s: _Input(s) for s in STREAMS}
+        self.inputs = {s: _Input(s) for s in (*STREAMS, REFERENCE)}
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
+        self.closed_loop: bool | None = None  # the last diagnosis's ``closed_loop`` verdict (None: none yet)
         self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
         self._cpu_mark = (time.monotonic(), time.process_time())  # ``_cpu_percent``'s last reading
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -384,15 +395,18 @@ class IdentificationCore:
         publishers, the output_mcap writer and the Foxglove server."""
         self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
         config = engine_config(self.values)
-        for stream in STREAMS:  # fail fast on a bad configuration
+        for stream in self._streams():  # fail fast on a bad configuration
             self._check_stream(stream, self.values)
+        if self.values["reference_topic"] and self.values["method"] not in REFERENCE_METHODS:
+            raise UsageError(f"reference_topic: the method {self.values['method']} has no instrumented form "
+                             f"(use one of {', '.join(REFERENCE_METHODS)})")
         if self.values["foxglove_port"]:
             from .foxglove_server import DashboardServer  # the SDK only when asked for
 
             self.server = DashboardServer(self.values["foxglove_host"], self.values["foxglove_port"], self.get_name(),
                                           self._warn_throttled, parameters=self,
                                           services=self.trigger_services.handlers)
-        self.engine = StreamingEngine(config)
+        self.engine = self._new_engine(config)
         self.stamper = ArrivalStamper(self.values["sample_rate"])
         self.unplaced = 0  # samples seen while the stamper still infers the rate
         if self.values["solver_process"]:
@@ -418,7 +432,7 @@ class IdentificationCore:
         if self.solver is not None and not self.solver.wait_ready(WORKER_READY_SECONDS):
             self.get_logger().warning(f"the solver process is not ready after {WORKER_READY_SECONDS:g} s; "
                                       "subscribing anyway (solves wait for it)")
-        for stream in STREAMS:
+        for stream in self._streams():
             self._subscribe(stream)
         self._stop = stop = threading.Event()  # per activation: a thread still finishing a solve sees its own
         self._workers = [threading.Thread(target=loop, args=(stop,), name=f"hammer_ros_{what}", daemon=True)
@@ -497,6 +511,14 @@ class IdentificationCore:
         source.subscribe(self, cls, self.values[f"{stream}_topic"], _queueing_callback(source), qos,
                          raw=source.raw is not None)
 
+    def _new_engine(self, config: EngineConfig) -> StreamingEngine:
+        """An empty engine of ``config`` (holding the reference when ``reference_topic`` is set)."""
+        return StreamingEngine(config, reference=bool(self.values["reference_topic"]))
+
+    def _streams(self) -> tuple[str, ...]:
+        """The input streams: excitation, response and, when ``reference_topic`` is set, reference."""
+        return (*STREAMS, REFERENCE) if self.values["reference_topic"] else STREAMS
+
     def _bad_message(self, stream: str, exc: Exception) -> None:
         source = self.inputs[stream]
         source.field_errors += 1
@@ -509,6 +531,9 @@ class IdentificationCore:
         with self._lock:
             pending = {stream: _drained(source.pending) for stream, source in self.inputs.items()}
             batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
+            reference = batches.pop(REFERENCE, None)
+            if reference is not None:
+                self.engine.add_reference(*reference)
             self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
             for source in self.inputs.values():
                 source.pending_limit = max(1, self.values["max_pending"] // source.message_samples)
@@ -541,7 +566,8 @@ class IdentificationCore:
             if stamp and n == 1:
                 first = stamp
             elif stamp:  # a stamped batch: the last sample at the stamp
-                t = self.engine.message_stamps(stream, stamp, n)
+                t = (self.engine.message_stamps(stream, stamp, n) if stream != REFERENCE else
+                     stamp - np.arange(n - 1, -1, -1) / self.stamper.rate if self.stamper.rate else None)
                 if t is None:
                     self.engine.stats.unstamped += 1
                     continue
@@ -636,7 +662,7 @@ class IdentificationCore:
             if streams:  # a new signal: the window restarts
                 for source in self.inputs.values():
                     source.pending.clear()
-                self.engine = StreamingEngine(config)
+                self.engine = self._new_engine(config)
                 self.stamper.set_rate(config.sample_rate)
                 for stream in streams if self.active else ():
                     self._subscribe(stream)
@@ -754,6 +780,8 @@ class IdentificationCore:
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
         doc |= self._diagnosis(v, y)
         doc["seconds"] = time.perf_counter() - started
+        rows = [e for e in doc.get("evidence", ()) if e.get("test") == CLOSED_LOOP_TEST]
+        self.closed_loop = (not rows[0]["passed"]) if rows else None
         self._send([diagnosis_message(doc)], self._now(), publish=self.active)
         return doc
 
@@ -792,7 +820,8 @@ class IdentificationCore:
     def _check_publisher_types(self) -> None:
         """Note publishers of another message type on an input topic: DDS never delivers their
         messages, so without this a wrong type would look like silence."""
-        for stream, source in self.inputs.items():
+        for stream in self._streams():
+            source = self.inputs[stream]
             topic = expand_topic_name(self.values[f"{stream}_topic"], self.get_name(), self.get_namespace())
             wanted = _normal_type(self.values[f"{stream}_type"])
             others = sorted({info.topic_type for info in self.get_publishers_info_by_topic(topic)
@@ -850,6 +879,11 @@ class IdentificationCore:
         if self.server is not None:
             values.update(self.server.diagnostics(), foxglove_port=self.server.port)
         status["values"].extend({"key": k, "value": str(v)} for k, v in values.items())
+        if self.closed_loop is not None:
+            status["values"].append({"key": "closed_loop", "value": str(self.closed_loop).lower()})
+        if self.closed_loop and not self.values["reference_topic"]:
+            status["level"] = max(status["level"], 1)
+            status["message"] = f"{status['message']}; {CLOSED_LOOP_WARNING}"
         errors = [s.last_error for s in self.inputs.values() if s.field_errors]
         errors += [s.wrong_type for s in self.inputs.values() if s.wrong_type]
         if errors and status["level"] < 2:
@@ -884,7 +918,7 @@ class IdentificationCore:
             for source in self.inputs.values():
                 source.pending.clear()
             dropped = self.engine.snapshot().v.size
-            self.engine = StreamingEngine(self.engine.config)
+            self.engine = self._new_engine(self.engine.config)
             self.stamper = ArrivalStamper(self.values["sample_rate"])
             self.last_outcome = None
         self.get_logger().info(f"window reset by ~/reset ({dropped} samples dropped)")

@@ -56,12 +56,14 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ..errors import HammerRosError, UsageError
+from ..identification.instrumental import refinement_input
 from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
 from ..identification.result import IdentificationResult, fit_percent
 from .aligner import StreamAligner
 from .config import CLS_STRUCTURES, KEEP_MARGIN, PE_CONDITION_LIMIT, EngineConfig, EngineStats
 from .correlation_window import CorrelationWindow
+from .reference import ReferenceTrack
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,6 +82,7 @@ class EngineSnapshot:
     published: IdentificationResult | None = None  # the model published last (see ``solve_snapshot``)
     reference_std: float = 0.0  # largest input std of the windows behind the published models
     epoch: int = 0  # changes when the published model is forgotten (new engine, new settings): ``SolverProcess``
+    reference_window: np.ndarray | None = None  # a closed loop's reference on the window's grid (NaN: none there)
 
 
 
@@ -107,7 +110,9 @@ _EPOCHS = itertools.count(1)
 class StreamingEngine:
     """Aligns excitation and response streams, keeps the correlation sums and the raw window."""
 
-    def __init__(self, config: EngineConfig | None = None) -> None:
+    def __init__(self, config: EngineConfig | None = None, reference: bool = False) -> None:
+        """``reference``: also take a closed loop's reference (``add_reference``), the instrument of
+        every solve (``identification.instrumental``)."""
         self._config = (config or EngineConfig()).validated()
         self.stats = EngineStats(sample_rate=self._config.sample_rate)
         self._corr = CorrelationWindow(self._config.window, self._config.tau_max, self._config.forgetting)
@@ -116,6 +121,7 @@ class StreamingEngine:
         self._published: IdentificationResult | None = None
         self._reference_std = 0.0
         self._epoch = next(_EPOCHS)
+        self._reference = ReferenceTrack(self._config.window) if reference else None
 
     @property
     def config(self) -> EngineConfig:
@@ -142,6 +148,8 @@ class StreamingEngine:
         self._published, self._reference_std = None, 0.0  # new settings: the next estimate is published
         self._epoch = next(_EPOCHS)
         self._aligner.config = new
+        if self._reference is not None:
+            self._reference.capacity = max(self._reference.capacity, new.window)
         if (new.window, new.tau_max, new.forgetting) != (old.window, old.tau_max, old.forgetting):
             self._corr.rebuild(new.window, new.tau_max, new.forgetting)
         if new.sample_rate != old.sample_rate:
@@ -157,6 +165,10 @@ class StreamingEngine:
     def add_response(self, t: np.ndarray, y: np.ndarray) -> int:
         """Add samples y at stamps t (s); returns how many were accepted."""
         return self._aligner.add("response", t, y)
+
+    def add_reference(self, t: np.ndarray, r: np.ndarray) -> None:
+        """Add reference samples r at stamps t (s) (an engine made with ``reference=True``)."""
+        self._reference.add(t, r)
 
     def message_stamps(self, stream: str, stamp: float, count: int) -> np.ndarray | None:
         """See ``StreamAligner.message_stamps`` (batch convention: last sample at the stamp)."""
@@ -181,6 +193,8 @@ class StreamingEngine:
         return self._aligner.buffered
 
     def _append_aligned(self, grid: np.ndarray, v: np.ndarray, y: np.ndarray) -> None:
+        if self._reference is not None:
+            self._reference.grid(grid)
         self._corr.add(v, y)
         self._stamp = float(grid[-1])
         self._update_fill()
@@ -194,8 +208,13 @@ class StreamingEngine:
     def snapshot(self) -> EngineSnapshot:
         v, y = self._corr.raw()
         phi_vv, phi_yv, phi_yvv = self._corr.correlations()
+        reference = None
+        if self._reference is not None:
+            rate = self._aligner.rate or 1.0
+            gap = self._config.max_gap or 5.0 / rate
+            reference = self._reference.window(v.size, 0.01 / rate, gap)
         return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
-                              self.stats.copy(), self._published, self._reference_std, self._epoch)
+                              self.stats.copy(), self._published, self._reference_std, self._epoch, reference)
 
     def solve(self) -> SolveOutcome:
         """Solve on the current window (synchronously) and count it in the stats."""
@@ -335,9 +354,16 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
 
     if _window_status(snapshot, cond, spread, peak)[0]:
         return estimate()
+    reference = snapshot.reference_window
+    if reference is not None and not np.all(np.isfinite(reference)):
+        missing = int(np.count_nonzero(~np.isfinite(reference)))
+        return estimate(status="failed", reason=f"reference: none at {missing} of the window's {reference.size} "
+                        "samples (before its first sample or in a gap)")
     try:
         with np.errstate(all="ignore"):  # an unstable early model: fit/rms become null, no warning
-            if cfg.method in CLS_STRUCTURES:
+            if reference is not None:  # closed loop: the methods' instrumented forms on the raw window
+                result = identify(cfg.method, v, y, replace(cfg.identify_options(), reference=reference))
+            elif cfg.method in CLS_STRUCTURES:
                 from ..identification.correlation_least_squares import cls_from_correlations
 
                 result = cls_from_correlations(snapshot.phi_vv, snapshot.phi_yv, v, y, cfg.identify_options(),
@@ -347,7 +373,7 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
             if cfg.refine:
                 from ..identification.refinement import refine_result
 
-                result = refine_result(result, v, y)
+                result = refine_result(result, refinement_input(v, reference), y)
             doc = result.to_json(v, y) if document else None
             fit = doc.get("fit_percent") if document else fit_percent(y, result.simulate(v))
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
@@ -395,8 +421,9 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
         return outcome(False, estimate.reason, status=estimate.status)
     result = estimate.result
     try:
-        with np.errstate(all="ignore"):
-            kept = _published_fits_better(snapshot.published, v, y, estimate.fit)
+        with np.errstate(all="ignore"):  # closed loop: no keeping (below)
+            kept = "" if snapshot.reference_window is not None else _published_fits_better(
+                snapshot.published, v, y, estimate.fit)
     except Exception as exc:
         status, reason = _failure(cfg.method, exc)
         return outcome(False, reason, status=status)
@@ -455,7 +482,9 @@ def _published_fits_better(published: IdentificationResult | None, v: np.ndarray
                            new_fit: float | None) -> str:
     """'' or why the published model stays: on a window that says little (a fading excitation,
     noise), a new estimate can be far off; it replaces the published model unless the published
-    model simulates the window better by more than KEEP_MARGIN fit points."""
+    model simulates the window better by more than KEEP_MARGIN fit points. Not with a closed
+    loop's reference: there the free-run fit on v is the noise fed back, and a biased model may
+    simulate it better than the instrumented one."""
     if published is None:
         return ""
     old_fit = fit_percent(y, published.simulate(v))

@@ -1,0 +1,76 @@
+"""The feedback test: does the input depend on past output, i.e. was the record taken in closed
+loop? (``diagnose`` evidence row ``closed_loop``.)
+
+In open loop the input is independent of the noise, so a model's residual e(k) (which holds the
+noise) is uncorrelated with every *future* input u(k + tau), tau >= 1, whatever the model error
+(Ljung, System Identification, 2nd ed., sec. 16.6: "the cross-correlation between residuals and
+inputs for negative lags [...] indicates output feedback"; MATLAB's ``feedback`` and ``resid``).
+A coloured input would correlate with e through its own past; so the input is first
+prewhitened by a least-squares AR(``AR_ORDER``) fit, and e is correlated with the input's
+innovations nu(k) = A_u(q) u(k): in open loop nu(k + tau) is a new, independent part of the
+input, white, so the sample correlation coefficient
+
+    r(tau) = sum_k e'(k) nu'(k + tau) / sqrt(sum e'^2 sum nu'^2),   tau = 1..MAX_LAG
+
+(primes: means removed) has variance 1/N at every lag (Bartlett's formula with rho_nunu = delta,
+``residual_tests``), for a coloured e too. The bound uses Bartlett's formula with the sample
+autocorrelations of nu and e all the same (``bartlett_cross_sigma``): an input that is not a
+linear random process (a multisine: its AR innovations keep its lines) leaves nu coloured, and
+the bound widens with it. And the residual's part that the present and past input explain
+linearly (``causal_projection`` on u(k) .. u(k - INPUT_LAGS): a linear model error, and for a
+periodic input, whose future is a linear function of its past, everything at its lines) is
+removed first: in open loop what is left is orthogonal to the input's past and so to the
+innovations of a random input and to the whole of a periodic one; in closed loop the noise is
+left, and the controller brings it into the future input. In closed loop u(k + tau) = K(r - y)(k + tau) carries
+the noise of e(k) back (directly, and through the noise's colour): r(tau) is far outside its
+bound. The test fails when max |r(tau)| exceeds the simultaneous 95 % level over the lags
+(Bonferroni, ``simultaneous_level``); value = that |r|, bound = the level / sqrt(N).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+from ..identification.instrumental import causal_projection
+from ..identification.regression import lagged_columns, solve_least_squares
+from .residual_tests import MAX_LAG, Evidence, bartlett_cross_sigma, simultaneous_level
+
+AR_ORDER = 10
+INPUT_LAGS = 60  # the residual's part explained by u(k) .. u(k - 60) is removed first
+TEST_NAME = "closed_loop"
+WARNING = "the excitation depends on the response: closed loop; estimates without a reference are biased"
+
+
+def innovations(u: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
+    """nu(k) = u'(k) + sum_j a_j u'(k - j), the residual of the least-squares AR(order) fit of
+    u' = u - mean(u) (zero before the record), i.e. u prewhitened."""
+    u = np.asarray(u, dtype=float) - np.mean(u)
+    rows = np.arange(order, u.size)
+    a = solve_least_squares(-lagged_columns(u, range(1, order + 1), rows), u[rows])
+    if not np.all(np.isfinite(a)):
+        return u
+    return signal.lfilter(np.concatenate([[1.0], a]), [1.0], u)[order:]
+
+
+def future_input_correlation(u: np.ndarray, residual: np.ndarray,
+                             max_lag: int = MAX_LAG) -> tuple[np.ndarray, float]:
+    """(r(tau) of the module docstring for tau = 1..max_lag: the residual against the input's
+    innovations tau samples later, its standard deviation under independence)."""
+    nu = innovations(u)
+    e = np.asarray(residual, dtype=float)
+    e = (e - causal_projection(e, u, INPUT_LAGS))[-nu.size:]
+    e, nu = e - e.mean(), nu - nu.mean()
+    scale = np.sqrt((e @ e) * (nu @ nu))
+    if scale == 0.0:
+        return np.zeros(max_lag), 1.0
+    r = np.array([e[: e.size - tau] @ nu[tau:] for tau in range(1, max_lag + 1)]) / scale
+    return r, bartlett_cross_sigma(nu, e)
+
+
+def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX_LAG) -> Evidence:
+    """The ``closed_loop`` evidence row of ``diagnose`` for the input ``u`` and a model's residual
+    (``passed`` False: the input depends on past residuals, a closed loop)."""
+    r, sigma = future_input_correlation(u, residual, max_lag)
+    value, bound = float(np.max(np.abs(r))), simultaneous_level(max_lag) * sigma
+    return Evidence(TEST_NAME, value, bound, value <= bound)
