@@ -132,7 +132,7 @@ def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
     outcome = engine.solve()
     assert not outcome.ok and outcome.status == "uncertain" and outcome.reason.startswith("uncertain model: ")
     assert engine.stats.uncertain == 1 and engine.snapshot().published is confident.result
-    status = diagnostics_message(engine.stats, outcome, 0.0)["status"][0]
+    status = diagnostics_message(engine.stats, outcome, 0)["status"][0]
     assert status["level"] == DIAGNOSTIC_WARN and status["message"].endswith("publishing the last good model as stale")
     assert {"key": "uncertain", "value": "1"} in status["values"]
     engine.reconfigure(max_relative_sd=0.0)  # off: the same window's model is published
@@ -153,7 +153,7 @@ def test_the_dashboard_draws_the_intervals():
     engine.add_excitation(t, v)
     engine.add_response(t, y)
     outcome = engine.solve()
-    channels = dict(dashboard_messages(result_messages(outcome, 1.0), 1.0))
+    channels = dict(dashboard_messages(result_messages(outcome, 1_000_000_000), 1_000_000_000))
     poles, fmap = channels["poles"], channels["nonlinearity"]
     for part in ("real", "magnitude"):
         value = np.array(poles[part])

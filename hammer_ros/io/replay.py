@@ -364,7 +364,8 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
     next_solve: list[float | None] = [None] * len(channels)
     writer = ResultWriter(out) if out else None
     started = time.perf_counter()
-    done, bag_start, bag_time = 0, None, float("nan")
+    done, bag_start, bag_time, bag_time_ns = 0, None, float("nan"), 0
+    input_stamps = [InputStamps() for _ in channels]  # each channel's results take its input's exact stamps
 
     def solve(index: int, bag_time: float) -> None:
         engine = engines[index]
@@ -374,7 +375,7 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
         outcomes[index] = [last_ok, outcome]
         if writer is None:
             return
-        stamp = next((s for s in (outcome.stamp, bag_time) if math.isfinite(s)), 0.0)
+        stamp = input_stamps[index].exact(outcome.stamp) if math.isfinite(outcome.stamp) else bag_time_ns
         name = f"{node_name}/{channels[index].name}"
         messages = result_messages(outcome, stamp, frame_id)
         if not outcome.ok and last_ok is not None:
@@ -402,10 +403,12 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
                     rate = channels[i].solve_rate
                     next_solve[i] = due + math.ceil((sample.stamp - due) * rate + 1e-9) / rate
             engine = engines[index]
+            if stream == "excitation":
+                input_stamps[index].add(sample.stamp, sample.stamp_ns)
             engine.add_message(stream, sample.stamp, sample.values, flush=False)
             if engine.buffered >= FLUSH_SAMPLES:
                 engine.flush()
-            bag_time = sample.stamp
+            bag_time, bag_time_ns = sample.stamp, sample.stamp_ns
             done += sample.stream in firsts
             if progress:
                 progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)

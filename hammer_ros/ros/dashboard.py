@@ -55,7 +55,7 @@ _LINEAR = _object({"a": _NUMBERS, "b": _NUMBERS, "poles": _PAIRS, "zeros": _PAIR
 _MODEL = {"method": _STRING, "order": _INTEGER, "poles": _PAIRS, "zeros": _PAIRS, "gain": _NUMBER_OR_NULL,
           "stable": _BOOLEAN, "a": _NUMBERS, "b": _NUMBERS, "markov": _NUMBERS, "nonlinearity": _MAP,
           "feedback_nonlinearity": _MAP, "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL,
-          "poles_std": _PAIRS, "zeros_std": _PAIRS, "gain_std": _NUMBER_OR_NULL,
+          "poles_std": _PAIRS, "zeros_std": _PAIRS, "gain_std": _NUMBER_OR_NULL, "uncertainty": _STRING,
           "tau_max": _INTEGER, "mu": _INTEGER, "plls": _object({}, others=_ANY), "parallel_path": _LINEAR,
           "refined": _object({}, others=_ANY)}
 _SCORE = {"structure": _STRING, "rms": _NUMBER, "fit_percent": _NUMBER}
