@@ -562,16 +562,16 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
         section.notes.append(f"skipped: {exc}")
         return section
     stored = stored_node_limits(limits_path) if step else {}
-    with ProbeSession() as session:
-        for batch, ladder in rates.items():
-            cpu: dict[tuple[str, float], dict[str, float]] = {}
+    for batch, ladder in rates.items():
+        cpu: dict[tuple[str, float], dict[str, float]] = {}
+        with ProbeSession() as session:  # one per message type: DDS keeps a topic's first type in a participant
             if step:
                 seeds = stored.get("limits", {}).get(str(batch), {})
                 seeds = {who: float(seeds.get(who) or ladder[-1]) for who in ("node", "bare", "foxglove")}
                 best, first_loss, tried, lower = _seeded_limits(batch, seeds, step, seconds, session.probe, cpu)
             else:
                 best, first_loss, tried, lower = _zero_loss_limits(batch, ladder, seconds, session.probe, cpu)
-            section.rows.append(_node_row(batch, best, first_loss, tried, lower, cpu))
+        section.rows.append(_node_row(batch, best, first_loss, tried, lower, cpu))
     if step:
         origin = (f"the full run of {stored['date']}" if stored.get("date") else
                   f"the plan's {', '.join(f'{r[-1]:g}' for r in rates.values())} msg/s (no figures stored)")
