@@ -104,7 +104,7 @@ QUICK = Plan(
     node_rates={1: (20000.0,), 100: (15000.0,)}, node_seconds=2.0, node_step=1.1,
     replay_messages={1: 20_000, 100: 2_000}, replay_repeats=3, solve_windows=(4000,), solve_repeats=60,
     slow_solve_repeats=5,
-    peer_frols=((3, 3, 15),), memory_windows=(10_000, 100_000),
+    peer_frols=((3, 3, 15),), memory_windows=(10_000,),
 )
 FULL = Plan(
     name="full", repeats=5, ingest_samples=1_000_000, ingest_taus=(50, 200), ingest_windows=(10_000, 100_000),
@@ -478,8 +478,9 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
         return not search.done and search.runs < SEARCH_RUNS and 100.0 <= rate(search.index) <= LADDER_CAP
 
     while running := [who for who in searches if searching(who)]:
-        for k in sorted({searches[who].index for who in running}):
-            group = tuple(who for who in running if searches[who].index == k)
+        rungs = {who: searches[who].index for who in running}  # one run of each per round
+        for k in sorted(set(rungs.values())):
+            group = tuple(who for who in running if rungs[who] == k)
             for who, lost in _losses(probe, rate(k), batch, seconds, group, tried, cpu, confirmations=0).items():
                 sample_loss = isinstance(lost, int) and lost > 0
                 searches[who].record(lost == 0, sample_loss)
@@ -1198,6 +1199,7 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS) -> Section:
     with tempfile.TemporaryDirectory(prefix="hammer_ros_bench_fleet_") as tmp:
         write_sample_fleet(tmp, joints, math.ceil(bags / len(joints)), samples=1000)
         sources = sources_from_paths([tmp])[:bags]
+        run_bag(settings, sources[0])  # this process's first bag pays lazy imports, as a worker's warm-up does
         serial, rows = _timed(lambda: [run_bag(settings, s) for s in sources])
         plain = plain_processes_wall(settings, sources, workers)
         startup, (client, cluster) = _timed(lambda: connect(None, workers))
@@ -1215,7 +1217,8 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS) -> Section:
                          "fleet": fleet.wall_s, "ratio": ratio, "plain": serial / plain, "task": task,
                          "overhead": overhead,
                          "startup": startup, "goal": ratio >= 1.7 and failed == 0})
-    section.notes.append(f"serial: the fleet's task (replay's loop) on each bag in turn in this process; fleet: "
+    section.notes.append(f"serial: the fleet's task (replay's loop) on each bag in turn in this process (after one "
+                         "bag apart); fleet: "
                          f"`run_fleet` on a LocalCluster of {workers} single-threaded worker processes, timed "
                          "from the first submit to the last row (cluster start-up and a warm-up of "
                          f"{workers * 2} bags apart); overhead = (fleet wall x workers - sum of the tasks' own "
