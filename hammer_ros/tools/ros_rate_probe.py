@@ -37,6 +37,10 @@ TOPICS = ("/command", "/response")
 MATCH_TIMEOUT = 15.0
 PUBLISHER_MATCH_TIMEOUT = 2 * MATCH_TIMEOUT  # the publisher starts beside a node that starts up (``_node``)
 SETTLE_SECONDS = 1.0
+# A subscriber that lost samples never counts them all: the wait for the rest ends once nothing has come
+# for QUIET_SECONDS (bare), or over QUIET_UPDATES /diagnostics of the node (4 a second) in a row.
+QUIET_SECONDS = 0.3
+QUIET_UPDATES = 3
 MAX_LAG = 0.02  # s behind its schedule at which the publisher counts a stall and resumes without a burst
 
 
@@ -197,8 +201,12 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
         executor.spin_until_future_complete(never, timeout_sec=0.05)
     sent = _result(publisher)
     settle = time.monotonic() + SETTLE_SECONDS  # what is still on its way, until every message is counted
-    while min(counts.values()) < sent["messages"] and time.monotonic() < settle:
+    total, moved = sum(counts.values()), time.monotonic()
+    while (min(counts.values()) < sent["messages"] and (now := time.monotonic()) < settle
+           and now - moved < QUIET_SECONDS):
         executor.spin_until_future_complete(never, timeout_sec=0.05)
+        if sum(counts.values()) != total:
+            total, moved = sum(counts.values()), time.monotonic()
     cpu = time.process_time() - cpu  # over the same span as the node's: from the go until all was counted
     _reap(publisher)
     for sub in subs:
@@ -207,18 +215,30 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
             "subscriber_cpu_seconds": cpu}
 
 
+class _Updates(list):
+    """The node's received-sample count (the lower of its two inputs') at each /diagnostics."""
+
+    def settled(self, since: int) -> bool:
+        """The last QUIET_UPDATES counts after the first ``since`` are the same: nothing more arrives."""
+        last = self[since:][-QUIET_UPDATES:]
+        return len(last) == QUIET_UPDATES and len(set(last)) == 1
+
+
 def _diagnostics_counters(node):
-    """Subscribe to /diagnostics: the hammer_ros status's key/value pairs, updated in place."""
+    """Subscribe to /diagnostics: the hammer_ros status's key/value pairs, updated in place, and
+    the received count at each message (``_Updates``)."""
     from diagnostic_msgs.msg import DiagnosticArray
 
     latest: dict[str, str] = {}
+    updates = _Updates()
 
     def on_diagnostics(msg) -> None:
         for status in msg.status:
             if status.name.startswith("hammer_ros"):
                 latest.update({kv.key: kv.value for kv in status.values})
+                updates.append(min(int(latest.get(k, 0)) for k in ("received_excitation", "received_response")))
 
-    return latest, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    return latest, updates, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
 
 
 def _node_subscribed(latest: dict[str, str]) -> bool:
@@ -301,7 +321,7 @@ def _free_port() -> int:
 def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, foxglove: bool = False) -> dict:
     """Run a fresh hammer_ros node and read its received-sample counters from /diagnostics; with
     ``foxglove`` its Foxglove server on and one client subscribed to every channel."""
-    latest, sub = _diagnostics_counters(node)
+    latest, updates, sub = _diagnostics_counters(node)
     port = _free_port() if foxglove else 0
     ident = _start_node(env, [f"sample_rate:={rate * batch}", "solve_rate:=4.0", "window:=4000",
                               f"foxglove_port:={port}"], batch)
@@ -320,9 +340,9 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
         cpu = process_cpu_seconds(ident.pid)
         _spin_until(executor, lambda: _result_ready(publisher), 120)
         sent = _result(publisher)
-        expected = sent["messages"] * batch
+        expected, since = sent["messages"] * batch, len(updates)
         _spin_until(executor, lambda: min(int(latest.get(k, 0)) for k in (
-            "received_excitation", "received_response")) >= expected, SETTLE_SECONDS + 1.0)
+            "received_excitation", "received_response")) >= expected or updates.settled(since), SETTLE_SECONDS + 1.0)
         end = process_cpu_seconds(ident.pid)
         sent["subscriber_cpu_seconds"] = None if cpu is None or end is None else end - cpu
     finally:
@@ -365,7 +385,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         node = rclpy.create_node("memory_probe", context=context)
         executor = EventsExecutor(context=context)
         executor.add_node(node)
-        latest, _ = _diagnostics_counters(node)
+        latest, _, _ = _diagnostics_counters(node)
         diagnoses: list[int] = []
         node.create_subscription(String, "/hammer_ros/diagnosis",
                                  lambda m: diagnoses.append(json.loads(m.data).get("samples", 0)), 10)
