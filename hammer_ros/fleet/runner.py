@@ -25,15 +25,11 @@ from .tasks import FleetSettings, run_bag
 SCHEDULER_TIMEOUT_S = 5.0
 # A LocalCluster shares the machine's cores with its scheduler (in this process) and its workers' own
 # threads: the statistical profiler samples every task's stack 100 x/s and the monitors poll psutil
-# every 0.5 s, for a dashboard that is off; profiler off, monitors every 5 s. Every event loop
-# (scheduler, client and nannies here, each worker) also ticks every 20 ms to detect a blocked
-# loop: an idle 2-worker cluster used 0.055 of a core for it (0.028 here + 0.028 in the workers;
-# 0.012 with a tick a second, 2026-12-04), which the bags' replay needs.
+# every 0.5 s, for a dashboard that is off; profiler off, monitors every 5 s.
 QUIET_CLUSTER = {
     "distributed.worker.profile.enabled": False,
     "distributed.admin.system-monitor.interval": "5s",
     "distributed.worker.memory.monitor-interval": "5s",
-    "distributed.admin.tick.interval": "1s",
 }
 CHECKPOINT_S = 30.0  # fleet.parquet is rewritten at least this often while the fleet runs
 MAX_BATCH = 8  # bags per task at most
