@@ -404,3 +404,16 @@ def test_the_full_run_stores_its_figures_for_the_quick_search(tmp_path):
     path.write_text("{not json")
     assert bench.stored_node_limits(path) == {} and bench.stored_node_limits(tmp_path / "none.json") == {}
     assert set(bench.stored_node_limits()["limits"]) == {"1", "100"}  # the repository's copy
+
+
+def test_a_search_out_of_runs_below_its_limit_has_a_lower_bound(monkeypatch):
+    """A subscriber whose search ends after SEARCH_RUNS runs while still climbing (a seed far
+    below its limit) has nothing lossy above its figure: the figure is marked as a lower bound,
+    not as its limit; one bracketed within its runs is measured."""
+    monkeypatch.setattr(bench, "SEARCH_RUNS", 3)
+    runs: list = []
+    best, first_loss, _, lower = bench._seeded_limits(
+        1, {"node": 10_000.0, "bare": 10_000.0, "foxglove": 10_000.0}, 1.1, 1.0,
+        _stand_in_probe({"node": 50_000.0, "bare": 10_500.0, "foxglove": 50_000.0}, runs))
+    assert lower["node"] and lower["foxglove"] and "node" not in first_loss and best["node"] > 10_000.0
+    assert not lower["bare"] and best["bare"] <= 10_500.0 < first_loss["bare"]
