@@ -421,7 +421,7 @@ class _Search:
     lossless, down while not, by 1, 2, 4 ... rungs, until a lossless rung lies below a lossy one;
     then bisection until they are adjacent. The lossy rung that decides the figure is run once
     more (the ladder's CONFIRMATIONS, for the one loss that matters): lossless then, the search
-    goes on above it. Its figure is then known to within one step."""
+    climbs on from the next rung. Its figure is then known to within one step."""
 
     index: int
     lossless: int | None = None
@@ -434,8 +434,8 @@ class _Search:
         self.runs += 1
         if self.lossy is not None and self.index == self.lossy and self.lossless == self.index - 1:  # confirming
             self.confirmed = not ok
-            if ok:
-                self.lossless, self.lossy, self.stride = self.index, None, 2
+            if ok:  # its limit is near: climb one rung, then 2, 4 ...
+                self.lossless, self.lossy, self.stride = self.index, None, 1
                 self.index += 1
             return
         if ok:
