@@ -335,3 +335,85 @@ def test_the_publisher_sends_every_message_through_a_stall(stall):
     schedule.run(sent.append, clock=lambda: now[0], sleep=sleep)
     assert sent == list(range(200)) and schedule.stalls == 1
     assert schedule.stalled == pytest.approx(stall, abs=1e-4)
+
+
+def _stand_in_probe(limits: dict[str, float], runs: list):
+    """A ``ros_rate_probe.probe`` whose subscribers lose samples above fixed limits."""
+    names = {"node": "hammer_ros node", "bare": "bare rclpy", "foxglove": "hammer_ros node + foxglove client"}
+
+    def probe(rates, batch, seconds, subscribers):
+        runs.extend((who, rates[0]) for who in subscribers)
+        return [{"subscriber": names[who], "messages": rates[0] * seconds, "publish_seconds": seconds,
+                 "lost": 0 if rates[0] <= limits[who] else 100} for who in subscribers]
+
+    return probe
+
+
+@pytest.mark.parametrize("seeds", [
+    {"node": 36_700.0, "bare": 30_000.0, "foxglove": 33_200.0},  # the last full run's figures, near the limits
+    {"node": 15_000.0, "bare": 15_000.0, "foxglove": 15_000.0},  # no stored figures: the plan's start, far below
+    {"node": 90_000.0, "bare": 60_000.0, "foxglove": 90_000.0},  # another machine's, far above
+])
+def test_the_seeded_search_brackets_each_limit_within_one_rung(seeds):
+    """The quick bench's search (``_seeded_limits``) from any seeds: each figure is a lossless
+    rung with the next rung of the grid lossy, that loss confirmed by CONFIRMATIONS more runs,
+    node / bare is a power of the step (one grid), the range is the ratio's at one rung's
+    resolution, and seeds near the limits cost three runs per subscriber."""
+    limits = {"node": 34_000.0, "bare": 31_000.0, "foxglove": 30_500.0}
+    runs: list = []
+    best, first_loss, tried, lower = bench._seeded_limits(1, seeds, 1.1, 1.0, _stand_in_probe(limits, runs))
+    assert lower == {"node": False, "bare": False, "foxglove": False}
+    for who, limit in limits.items():
+        assert best[who] <= limit < first_loss[who] <= 1.11 * best[who], (who, best[who], first_loss[who])
+        assert runs.count((who, first_loss[who])) == 1 + bench.CONFIRMATIONS, (who, runs)
+    steps = math.log(best["node"] / best["bare"]) / math.log(1.1)
+    assert abs(steps - round(steps)) < 0.05  # the same grid for both (up to the rounding to 100 msg/s)
+    row = bench._node_row(1, best, first_loss, tried, lower, {})
+    low, high = row["ratio_range"]
+    assert low == pytest.approx(best["node"] / first_loss["bare"]) and high == pytest.approx(
+        first_loss["node"] / best["bare"]) and low < row["ratio"] < high
+    per_subscriber = {who: sum(1 for w, _ in runs if w == who) for who in limits}
+    if seeds["bare"] == 30_000.0:
+        assert max(per_subscriber.values()) <= 3, runs  # the seed's rung, the one above and its confirmation
+    assert max(per_subscriber.values()) <= bench.SEARCH_RUNS
+
+
+def test_the_seeded_search_stops_at_the_cap_with_a_lower_bound():
+    """A subscriber that never loses a sample climbs to LADDER_CAP and stops there: its figure is
+    a lower bound and the ratio's range is open on that side."""
+    limits = {"node": 25_000.0, "bare": math.inf, "foxglove": 24_000.0}
+    runs: list = []
+    best, first_loss, tried, lower = bench._seeded_limits(
+        100, {"node": 25_000.0, "bare": 150_000.0, "foxglove": 25_000.0}, 1.1, 1.0, _stand_in_probe(limits, runs))
+    assert lower["bare"] and not lower["node"] and best["bare"] <= bench.LADDER_CAP
+    assert "bare" not in first_loss and max(r for w, r in runs if w == "bare") <= bench.LADDER_CAP
+    row = bench._node_row(100, best, first_loss, tried, lower, {})
+    assert row["ratio_range"][0] is None and row["range"].startswith("<=")
+    assert row["reference"].startswith(">= ")
+
+
+def test_the_full_run_stores_its_figures_for_the_quick_search(tmp_path):
+    """``_store_node_limits`` writes each message type's three figures; ``stored_node_limits``
+    reads them back (and gives {} for a missing or broken file)."""
+    path = tmp_path / "limits.json"
+    rows = [{"batch": 1, "node_rate": 36_700.0, "reference_rate": 30_000.0, "foxglove_rate": 33_200.0},
+            {"batch": 100, "node_rate": 25_700.0, "reference_rate": 23_200.0, "foxglove_rate": 23_200.0}]
+    assert "stored" in bench._store_node_limits(rows, path)
+    doc = bench.stored_node_limits(path)
+    assert doc["limits"]["100"] == {"node": 25_700.0, "bare": 23_200.0, "foxglove": 23_200.0} and doc["date"]
+    path.write_text("{not json")
+    assert bench.stored_node_limits(path) == {} and bench.stored_node_limits(tmp_path / "none.json") == {}
+    assert set(bench.stored_node_limits()["limits"]) == {"1", "100"}  # the repository's copy
+
+
+def test_a_search_out_of_runs_below_its_limit_has_a_lower_bound(monkeypatch):
+    """A subscriber whose search ends after SEARCH_RUNS runs while still climbing (a seed far
+    below its limit) has nothing lossy above its figure: the figure is marked as a lower bound,
+    not as its limit; one bracketed within its runs is measured."""
+    monkeypatch.setattr(bench, "SEARCH_RUNS", 3)
+    runs: list = []
+    best, first_loss, _, lower = bench._seeded_limits(
+        1, {"node": 10_000.0, "bare": 10_000.0, "foxglove": 10_000.0}, 1.1, 1.0,
+        _stand_in_probe({"node": 50_000.0, "bare": 10_500.0, "foxglove": 50_000.0}, runs))
+    assert lower["node"] and lower["foxglove"] and "node" not in first_loss and best["node"] > 10_000.0
+    assert not lower["bare"] and best["bare"] <= 10_500.0 < first_loss["bare"]

@@ -7,6 +7,7 @@ HTML page in headless Chromium, and bad input (exit 2, one line, before any work
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -384,3 +385,22 @@ def test_batch_size_keeps_small_fleets_one_bag_per_task_and_caps_large_ones():
     assert batch_size(40, 2) == 2  # each worker still gets >= 8 tasks
     assert batch_size(10_000, 32) == MAX_BATCH
     assert batch_size(0, 0) == 1
+
+
+def test_default_tasks_shrink_to_single_bags_at_the_end():
+    """``task_batches``: every bag once, in order; the bench's 200 bags on 2 workers in tasks of 8
+    and then fewer, the last ones single bags (the workers finish together); ``--batch N`` keeps
+    N bags per task."""
+    from hammer_ros.fleet.runner import MAX_BATCH, TAIL_SHARE, task_batches
+
+    bags = list(range(200))
+    batches = task_batches(bags, 2)
+    assert [b for batch in batches for b in batch] == bags
+    sizes = [len(batch) for batch in batches]
+    assert sizes[0] == MAX_BATCH and sizes == sorted(sizes, reverse=True) and sizes[-4:] == [1, 1, 1, 1]
+    left = len(bags)
+    for size in sizes:  # each task at most its share of what is left
+        assert size <= max(1, math.ceil(left / (TAIL_SHARE * 2)))
+        left -= size
+    assert [len(b) for b in task_batches(bags, 2, 5)] == [5] * 40
+    assert [len(b) for b in task_batches(list(range(24)), 2)] == [1] * 24

@@ -11,6 +11,7 @@ results directory, must be the same on every machine, e.g. a shared filesystem).
 from __future__ import annotations
 
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -33,6 +34,7 @@ QUIET_CLUSTER = {
 CHECKPOINT_S = 30.0  # fleet.parquet is rewritten at least this often while the fleet runs
 MAX_BATCH = 8  # bags per task at most
 BATCHES_PER_WORKER = 8  # tasks per worker at least, when the fleet is large enough to batch
+TAIL_SHARE = 2  # a default task holds at most 1 / (TAIL_SHARE x workers) of the bags left (``task_batches``)
 
 
 @dataclass
@@ -105,6 +107,23 @@ def batch_size(bags: int, workers: int) -> int:
     return int(max(1, min(MAX_BATCH, bags // (max(workers, 1) * BATCHES_PER_WORKER))))
 
 
+def task_batches(sources: Sequence[BagSource], workers: int, size: int | None = None) -> list[list[BagSource]]:
+    """The bags in tasks, in order: ``size`` bags each when given (``--batch``), else ``batch_size``
+    bags while many are left and then fewer, each task at most ceil(left / (TAIL_SHARE x workers))
+    (guided self-scheduling, Polychronopoulos & Kuck 1987), down to single bags at the end, so
+    the workers finish together instead of one running its last full task while the others idle
+    (200 bags on 2 workers: 22 tasks of 8, then 6, 5, 4, 3, 2 and four of 1)."""
+    workers = max(workers, 1)
+    largest = size or batch_size(len(sources), workers)
+    batches, start = [], 0
+    while start < len(sources):
+        left = len(sources) - start
+        take = largest if size else max(1, min(largest, math.ceil(left / (TAIL_SHARE * workers))))
+        batches.append(list(sources[start : start + take]))
+        start += take
+    return batches
+
+
 def run_batch(task: Callable[[FleetSettings, BagSource], dict], settings: FleetSettings,
               batch: Sequence[BagSource]) -> list[dict]:
     """The rows of the bags of one task, in order (runs on a worker)."""
@@ -115,7 +134,7 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
               checkpoint: Callable[[list[dict]], None] | None = None, progress: FleetProgress | None = None,
               task: Callable[[FleetSettings, BagSource], dict] = run_bag, batch: int | None = None) -> FleetRun:
     """Submit the bags in ``sources`` (minus those in ``done_rows``) in tasks of ``batch`` bags
-    (default ``batch_size``), gather the rows as they finish; ``checkpoint(rows)`` every
+    (default: ``task_batches``' shrinking tail), gather the rows as they finish; ``checkpoint(rows)`` every
     CHECKPOINT_S and at the end. Ctrl-C cancels what is left and returns what finished
     (``interrupted``)."""
     from distributed import as_completed
@@ -123,8 +142,7 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
     run = FleetRun(rows=list(done_rows), workers=worker_count(client))
     done_paths = {row["path"] for row in done_rows}
     todo = [s for s in sources if s.path not in done_paths]
-    size = batch or batch_size(len(todo), run.workers)
-    batches = [todo[i : i + size] for i in range(0, len(todo), size)]
+    batches = task_batches(todo, run.workers, batch)
     started = last_checkpoint = time.perf_counter()
     failed = sum(1 for row in done_rows if row.get("error"))
     progress = progress or FleetProgress(len(sources), enabled=False)

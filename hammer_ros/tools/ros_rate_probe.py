@@ -19,8 +19,10 @@ its threads, from the go until every sample was counted) and the publisher (whil
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
+import select
 import subprocess
 import sys
 import time
@@ -33,7 +35,12 @@ from .process_status import child_pids, process_cpu_seconds, process_status_kib
 
 TOPICS = ("/command", "/response")
 MATCH_TIMEOUT = 15.0
+PUBLISHER_MATCH_TIMEOUT = 2 * MATCH_TIMEOUT  # the publisher starts beside a node that starts up (``_node``)
 SETTLE_SECONDS = 1.0
+# A subscriber that lost samples never counts them all: the wait for the rest ends once nothing has come
+# for QUIET_SECONDS (bare), or over QUIET_UPDATES /diagnostics of the node (4 a second) in a row.
+QUIET_SECONDS = 0.3
+QUIET_UPDATES = 3
 MAX_LAG = 0.02  # s behind its schedule at which the publisher counts a stall and resumes without a burst
 
 
@@ -104,7 +111,7 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     node = rclpy.create_node("rate_probe_publisher")
     msg_type = Float64 if batch == 1 else Float64MultiArray
     pubs = [node.create_publisher(msg_type, topic, 1000) for topic in TOPICS]
-    deadline = time.monotonic() + MATCH_TIMEOUT
+    deadline = time.monotonic() + PUBLISHER_MATCH_TIMEOUT
     while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < deadline:
         time.sleep(0.01)
     print(json.dumps({"matched": True}), flush=True)
@@ -139,16 +146,36 @@ def _start_when_subscribed(publisher: subprocess.Popen, executor, subscribed: Ca
     when it says so (its first line), the subscriber has matched its writers when ``subscribed()``
     (the subscriber's own discovery, which can lag on a loaded machine; the middleware drops a
     message sent to a reader that has not matched the writer yet, which would count as lost)."""
-    if not publisher.stdout.readline():  # exited without matching: ``_finish`` reports it
+    if not publisher.stdout.readline():  # exited without matching: ``_result`` reports it
         return
     _spin_until(executor, subscribed, MATCH_TIMEOUT)
     publisher.stdin.write("go\n")
     publisher.stdin.flush()
 
 
+def _result_ready(publisher: subprocess.Popen) -> bool:
+    """The publisher printed its count (or exited): ``_result`` will not block."""
+    return bool(select.select([publisher.stdout], [], [], 0)[0]) or publisher.poll() is not None
+
+
+def _result(publisher: subprocess.Popen) -> dict:
+    """The publisher's count line. It then lingers 0.5 s (the last messages leave) while the
+    subscriber counts what is still on its way; ``_reap`` waits for its exit afterwards."""
+    line = publisher.stdout.readline()
+    if not line:
+        raise RuntimeError(f"the rate probe's publisher exited {publisher.wait(timeout=30)} without a count")
+    return json.loads(line)
+
+
+def _reap(publisher: subprocess.Popen) -> None:
+    publisher.communicate(timeout=120)
+
+
 def _finish(publisher: subprocess.Popen) -> dict:
-    out, _ = publisher.communicate(timeout=120)
-    return json.loads(out.strip().splitlines()[-1])
+    """The count line, once the publisher has exited."""
+    sent = _result(publisher)
+    _reap(publisher)
+    return sent
 
 
 def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) -> dict:
@@ -170,31 +197,48 @@ def _bare(node, executor, env: dict, rate: float, seconds: float, batch: int) ->
     publisher = _start_publisher(env, rate, seconds, batch)
     _start_when_subscribed(publisher, executor, lambda: all(sub.get_publisher_count() for sub in subs))
     cpu = time.process_time()
-    while publisher.poll() is None:
+    while not _result_ready(publisher):
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    sent = _finish(publisher)
+    sent = _result(publisher)
     settle = time.monotonic() + SETTLE_SECONDS  # what is still on its way, until every message is counted
-    while min(counts.values()) < sent["messages"] and time.monotonic() < settle:
+    total, moved = sum(counts.values()), time.monotonic()
+    while (min(counts.values()) < sent["messages"] and (now := time.monotonic()) < settle
+           and now - moved < QUIET_SECONDS):
         executor.spin_until_future_complete(never, timeout_sec=0.05)
+        if sum(counts.values()) != total:
+            total, moved = sum(counts.values()), time.monotonic()
     cpu = time.process_time() - cpu  # over the same span as the node's: from the go until all was counted
+    _reap(publisher)
     for sub in subs:
         node.destroy_subscription(sub)
     return {"subscriber": "bare rclpy (EventsExecutor)", "received": min(counts.values()) * batch, **sent,
             "subscriber_cpu_seconds": cpu}
 
 
+class _Updates(list):
+    """The node's received-sample count (the lower of its two inputs') at each /diagnostics."""
+
+    def settled(self, since: int) -> bool:
+        """The last QUIET_UPDATES counts after the first ``since`` are the same: nothing more arrives."""
+        last = self[since:][-QUIET_UPDATES:]
+        return len(last) == QUIET_UPDATES and len(set(last)) == 1
+
+
 def _diagnostics_counters(node):
-    """Subscribe to /diagnostics: the hammer_ros status's key/value pairs, updated in place."""
+    """Subscribe to /diagnostics: the hammer_ros status's key/value pairs, updated in place, and
+    the received count at each message (``_Updates``)."""
     from diagnostic_msgs.msg import DiagnosticArray
 
     latest: dict[str, str] = {}
+    updates = _Updates()
 
     def on_diagnostics(msg) -> None:
         for status in msg.status:
             if status.name.startswith("hammer_ros"):
                 latest.update({kv.key: kv.value for kv in status.values})
+                updates.append(min(int(latest.get(k, 0)) for k in ("received_excitation", "received_response")))
 
-    return latest, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+    return latest, updates, node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
 
 
 def _node_subscribed(latest: dict[str, str]) -> bool:
@@ -277,11 +321,12 @@ def _free_port() -> int:
 def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, foxglove: bool = False) -> dict:
     """Run a fresh hammer_ros node and read its received-sample counters from /diagnostics; with
     ``foxglove`` its Foxglove server on and one client subscribed to every channel."""
-    latest, sub = _diagnostics_counters(node)
+    latest, updates, sub = _diagnostics_counters(node)
     port = _free_port() if foxglove else 0
     ident = _start_node(env, [f"sample_rate:={rate * batch}", "solve_rate:=4.0", "window:=4000",
                               f"foxglove_port:={port}"], batch)
-    client = None
+    publisher = _start_publisher(env, rate, seconds, batch)  # its start-up beside the node's; it waits for the go
+    client, sent = None, None
     try:
         _spin_until(executor, lambda: bool(latest) or ident.poll() is not None, MATCH_TIMEOUT)  # up: diagnostics
         if ident.poll() is not None:  # refused its parameters (or crashed): not a measurement
@@ -291,20 +336,22 @@ def _node(node, executor, env: dict, rate: float, seconds: float, batch: int, fo
         if foxglove:
             client = _FoxgloveClient(port)
             _spin_until(executor, lambda: client.messages > 0, MATCH_TIMEOUT)  # connected and receiving
-        publisher = _start_publisher(env, rate, seconds, batch)
         _start_when_subscribed(publisher, executor, lambda: _node_subscribed(latest))
         cpu = process_cpu_seconds(ident.pid)
-        _spin_until(executor, lambda: publisher.poll() is not None, 120)
-        sent = _finish(publisher)
-        expected = sent["messages"] * batch
+        _spin_until(executor, lambda: _result_ready(publisher), 120)
+        sent = _result(publisher)
+        expected, since = sent["messages"] * batch, len(updates)
         _spin_until(executor, lambda: min(int(latest.get(k, 0)) for k in (
-            "received_excitation", "received_response")) >= expected, SETTLE_SECONDS + 1.0)
+            "received_excitation", "received_response")) >= expected or updates.settled(since), SETTLE_SECONDS + 1.0)
         end = process_cpu_seconds(ident.pid)
         sent["subscriber_cpu_seconds"] = None if cpu is None or end is None else end - cpu
     finally:
         if client is not None:
             client.close()
+        if sent is None:  # the node never came up: the publisher still waits for it, or for the go
+            publisher.kill()
         ident.terminate()
+        _reap(publisher)
         try:
             ident.communicate(timeout=10)
         except subprocess.TimeoutExpired:  # still finishing its backlog: not part of the measurement
@@ -338,7 +385,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
         node = rclpy.create_node("memory_probe", context=context)
         executor = EventsExecutor(context=context)
         executor.add_node(node)
-        latest, _ = _diagnostics_counters(node)
+        latest, _, _ = _diagnostics_counters(node)
         diagnoses: list[int] = []
         node.create_subscription(String, "/hammer_ros/diagnosis",
                                  lambda m: diagnoses.append(json.loads(m.data).get("samples", 0)), 10)
@@ -384,38 +431,58 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
 SUBSCRIBERS = ("bare", "node", "foxglove")
 
 
-def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False,
-          subscribers: tuple[str, ...] = ("bare", "node")) -> list[dict]:
-    """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate and
-    each of ``subscribers`` (SUBSCRIBERS: the bare subscriber, the node, the node with its
-    Foxglove server on and one client connected); ``foxglove`` adds the last."""
-    chosen = set(subscribers) | ({"foxglove"} if foxglove else set())
-    prepare_ros_environment()
-    rows = []
-    with DomainLease() as lease:
-        env = child_environment(lease.domain_id)
-        os.environ.update({k: env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
-                                               "FASTRTPS_DEFAULT_PROFILES_FILE")})
+class ProbeSession:
+    """A private ROS_DOMAIN_ID, an rclpy context and the counting node shared by many probe runs
+    (``probe``): their set-up, about 0.75 s on the 2-core bench VM, once rather than per rate."""
+
+    def __enter__(self) -> ProbeSession:
+        prepare_ros_environment()
+        self._stack = contextlib.ExitStack()
+        lease = self._stack.enter_context(DomainLease())
+        self.env = child_environment(lease.domain_id)
+        os.environ.update({k: self.env[k] for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE",
+                                                    "FASTRTPS_DEFAULT_PROFILES_FILE")})
         import rclpy
         from rclpy.experimental import EventsExecutor
 
         rclpy.init()
-        node = rclpy.create_node("rate_probe")
-        executor = EventsExecutor()
-        executor.add_node(node)
+        self.node = rclpy.create_node("rate_probe")
+        self.executor = EventsExecutor()
+        self.executor.add_node(self.node)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import rclpy
+
         try:
-            for rate in rates:
-                runs = {"bare": (_bare, {}), "node": (_node, {}), "foxglove": (_node, {"foxglove": True})}
-                for measure, options in (runs[who] for who in SUBSCRIBERS if who in chosen):
-                    row = measure(node, executor, env, rate, seconds, batch, **options)
-                    row.update(rate_msgs_per_s=rate, batch=batch, samples_per_s=rate * batch,
-                               lost=row["messages"] * batch - row["received"])
-                    rows.append(row)
-                    print(json.dumps(row), flush=True)
-        finally:
-            node.destroy_node()
+            self.node.destroy_node()
             rclpy.try_shutdown()
-    return rows
+        finally:
+            self._stack.close()
+
+    def probe(self, rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False,
+              subscribers: tuple[str, ...] = ("bare", "node")) -> list[dict]:
+        """Rows {subscriber, rate_msgs_per_s, batch, messages, received, lost, ...} for each rate
+        and each of ``subscribers`` (SUBSCRIBERS: the bare subscriber, the node, the node with its
+        Foxglove server on and one client connected); ``foxglove`` adds the last."""
+        chosen = set(subscribers) | ({"foxglove"} if foxglove else set())
+        rows = []
+        for rate in rates:
+            runs = {"bare": (_bare, {}), "node": (_node, {}), "foxglove": (_node, {"foxglove": True})}
+            for measure, options in (runs[who] for who in SUBSCRIBERS if who in chosen):
+                row = measure(self.node, self.executor, self.env, rate, seconds, batch, **options)
+                row.update(rate_msgs_per_s=rate, batch=batch, samples_per_s=rate * batch,
+                           lost=row["messages"] * batch - row["received"])
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+        return rows
+
+
+def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False,
+          subscribers: tuple[str, ...] = ("bare", "node")) -> list[dict]:
+    """``ProbeSession.probe`` in a session of its own."""
+    with ProbeSession() as session:
+        return session.probe(rates, batch, seconds, foxglove, subscribers)
 
 
 def main(argv: list[str] | None = None) -> int:
