@@ -189,12 +189,19 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     fit(list(dict.fromkeys(t.cause for t in supported)))
     found_by = "signature"
     cause = max(gains, key=gains.get) if gains else "none"
-    if cause != "none" and gains[cause] < MIN_GAIN:
+
+    def gains_enough(c: str, least: float) -> bool:
+        """At least ``least``, and below BLIND_MIN_GAIN significantly so (a few per cent of RMS on a
+        short validation part is not evidence)."""
+        return gains[c] >= least and (gains[c] >= BLIND_MIN_GAIN
+                                      or _beats_the_baseline(split, extensions[c].validation_output, x_val))
+
+    if cause != "none" and not gains_enough(cause, MIN_GAIN):
         cause = "none"
     if cause == "none" and not all(t.evidence().passed for t in correlation):
         signed = dict(gains)
         fit([c for c in BLIND_CAUSES if c in EXTENSIONS and c not in signed])
-        blind = {c: g for c, g in gains.items() if c not in signed and g >= BLIND_MIN_GAIN}
+        blind = {c: g for c, g in gains.items() if c not in signed and gains_enough(c, BLIND_MIN_GAIN)}
         if blind:
             cause = max(blind, key=blind.get)
             found_by = "a search of every extension (no significant signature led to a gain; the residual tests failed)"
@@ -240,28 +247,41 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions, chain)
 
 
-def _within_noise(split: Split, extensions: dict[str, ExtendedModel], gains: dict[str, float],
-                  best: str) -> list[str]:
-    """The other candidates (gain >= MIN_GAIN) whose validation errors the best one's do not beat
-    significantly: over TIE_BLOCKS consecutive blocks of the judged validation samples, the log
-    ratio of the two models' mean squared errors in each block is t-tested against 0 (block means
-    are nearly independent when the errors are slowly correlated; the log ratio keeps a few blocks
-    of large errors, a step of the input, from deciding alone), |t| below the two-sided 95 % point."""
+def _block_t(split: Split, first: np.ndarray, second: np.ndarray) -> tuple[float, int]:
+    """(t, blocks) of two validation outputs' errors: over TIE_BLOCKS consecutive blocks of the
+    judged validation samples, the log ratio of the two mean squared errors in each block, t-tested
+    against 0 (negative: ``first`` predicts better). Block means are nearly independent when the
+    errors are slowly correlated; the log ratio keeps a few blocks of large errors (a step of the
+    input) from deciding alone. (0, 0) with fewer than 4 blocks of 10 samples."""
     rows = split.judged_rows
     blocks = min(TIE_BLOCKS, rows.size // 10)
     if blocks < 4:
-        return []
-    error = {c: (split.y_val - m.validation_output)[rows] for c, m in extensions.items()}
-    critical = float(stats.t.ppf(0.975, blocks - 1))
+        return 0.0, 0
+    a, b = (split.y_val - first)[rows], (split.y_val - second)[rows]
+    floor = 1e-12 * float(np.mean(b**2)) + 1e-300
+    ratios = np.array([np.log((np.mean(x**2) + floor) / (np.mean(z**2) + floor))
+                       for x, z in zip(np.array_split(a, blocks), np.array_split(b, blocks))])
+    spread = float(np.std(ratios, ddof=1))
+    return (float(np.mean(ratios)) / (spread / np.sqrt(blocks)) if spread > 0 else 0.0), blocks
+
+
+def _beats_the_baseline(split: Split, output: np.ndarray, baseline: np.ndarray) -> bool:
+    """An extension's validation errors are significantly below the baseline's (``_block_t``,
+    one-sided 95 %): a gain of a few per cent on a short validation part is not evidence."""
+    t, blocks = _block_t(split, output, baseline)
+    return blocks == 0 or t < -float(stats.t.ppf(0.95, blocks - 1))
+
+
+def _within_noise(split: Split, extensions: dict[str, ExtendedModel], gains: dict[str, float],
+                  best: str) -> list[str]:
+    """The other candidates (gain >= MIN_GAIN) whose validation errors the best one's do not beat
+    significantly (``_block_t``, |t| below the two-sided 95 % point)."""
     tied = []
     for other, gain in sorted(gains.items(), key=lambda kv: -kv[1]):
         if other == best or gain < MIN_GAIN:
             continue
-        floor = 1e-12 * float(np.mean(error[other] ** 2)) + 1e-300
-        ratios = np.array([np.log((np.mean(a**2) + floor) / (np.mean(b**2) + floor)) for a, b in
-                           zip(np.array_split(error[best], blocks), np.array_split(error[other], blocks))])
-        spread = float(np.std(ratios, ddof=1))
-        if spread > 0 and abs(float(np.mean(ratios))) / (spread / np.sqrt(blocks)) < critical:
+        t, blocks = _block_t(split, extensions[best].validation_output, extensions[other].validation_output)
+        if blocks and abs(t) < float(stats.t.ppf(0.975, blocks - 1)):
             tied.append(other)
     return tied
 
