@@ -172,3 +172,23 @@ def test_the_servo_sample_bag_is_diagnosed_as_a_servo_loop(capsys):
     assert doc["cause"] == "output_feedback" and doc["extended"]["form"] == "servo_loop"
     assert doc["gain"]["rms_ratio"] >= 5.0
     assert doc["extended"]["rms"] < 0.01  # rad, against a baseline near 0.03
+
+
+def test_the_block_test_tells_a_better_model_from_one_within_noise():
+    """``_block_t``: the log ratio of two validation outputs' block MSEs, t-tested. Two models with
+    errors of one spread are within noise; 10 % less error on every block is significant, and a
+    gain made by one block of a few large errors is not."""
+    from hammer_ros.diagnosis.diagnose import _beats_the_baseline, _block_t
+
+    rng = np.random.default_rng(4)
+    n = 1000
+    y = np.zeros(n)
+    split = Split(np.zeros(10), np.zeros(10), np.zeros(n), y, continuous=False)
+    a, b = rng.standard_normal(n), rng.standard_normal(n)
+    t, blocks = _block_t(split, y - a, y - b)
+    assert blocks == 20 and abs(t) < 2.1
+    assert _beats_the_baseline(split, y - 0.9 * b, y - b)
+    spike = b.copy()
+    spike[:20] *= 10.0  # a few large errors in one block: the RMS ratio is 1.6, but 19 blocks are equal
+    assert np.sqrt(np.mean(spike**2) / np.mean(b**2)) > 1.5
+    assert not _beats_the_baseline(split, y - b, y - spike)
