@@ -28,6 +28,7 @@ PLANTS = {"shoulder": LinearModel.from_zeros_poles([-0.5], [0.9 + 0.2j, 0.9 - 0.
           "elbow": LinearModel.from_zeros_poles([-0.5], [0.8 + 0.4j, 0.8 - 0.4j], dc_gain=1.0),
           "wrist": LinearModel.from_zeros_poles([], [0.7], dc_gain=1.0)}  # first order: its own `order: 1`
 POLE_TOLERANCE = 0.02
+WINDOW = 1000  # the window of PARAMS
 PARAMS = """\
 hammer_ros:
   ros__parameters:
@@ -89,7 +90,8 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
         start = time.monotonic()
 
         def converged() -> bool:
-            return all(m and _pole_error(name, m[-1]) < POLE_TOLERANCE for name, m in models.items())
+            return all(m and m[-1]["samples"] == WINDOW and _pole_error(name, m[-1]) < POLE_TOLERANCE
+                       for name, m in models.items())
 
         for k in range(n):
             cmd.publish(Float64MultiArray(data=[float(commands[c][k]) for c in JOINTS]))
