@@ -139,3 +139,29 @@ def test_bad_channels_exit_2_with_one_line(ros_env, tmp_path, change, needle):
     assert done.returncode == 2, done.stderr
     lines = [line for line in done.stderr.splitlines() if "error" in line]
     assert len(lines) == 1 and needle in lines[0], done.stderr
+
+
+def test_one_channel_is_the_single_channel_node_of_its_parameters(ros_env, tmp_path):
+    from rclpy.parameter import parameter_value_to_python
+    from rclpy.parameter_client import AsyncParameterClient
+
+    params = tmp_path / "one.yaml"
+    params.write_text(PARAMS.replace("channels: [shoulder, elbow, wrist]", "channels: [wrist]")
+                      .replace("    shoulder: {", "    # shoulder: {").replace("    elbow: {", "    # elbow: {"))
+    node = _node(ros_env, params, tmp_path / "node.log")
+    listener = Listener(ros_env)
+    try:
+        client = AsyncParameterClient(listener.node, "hammer_ros")
+        listener.wait_for(client.services_are_ready, what="the node's parameter services")
+        values = listener.wait_future(client.get_parameters(["excitation_field", "response_field", "order"])).values
+        assert [parameter_value_to_python(v) for v in values] == ["data[2]", "velocity[wrist_1_joint]", 1]
+        topics = listener.wait_for(lambda: {t for t, _ in listener.node.get_topic_names_and_types()} >=
+                                   {"/hammer_ros/model", "/hammer_ros/poles"} and
+                                   {t for t, _ in listener.node.get_topic_names_and_types()},
+                                   what="the node's output topics")
+        assert not any(t.startswith("/hammer_ros/wrist") for t in topics)
+    finally:
+        listener.close()
+        node.send_signal(signal.SIGINT)
+        code = node.wait(timeout=20)
+    assert code == 0, (tmp_path / "node.log").read_text()[-3000:]

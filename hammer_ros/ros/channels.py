@@ -51,6 +51,14 @@ def file_channels(node) -> list[Channel]:
     return config_channels(params, SOURCE)
 
 
+def channel_values(node, channel: Channel) -> dict[str, Any]:
+    """The node parameters ``channel`` sets: its ``params`` (the file's top level with its own
+    overrides) and its node-only keys (``NAME.solver_process``, ...) from the node's overrides."""
+    section = {k.split(".", 1)[1]: v.value for k, v in node._parameter_overrides.items()
+               if k.startswith(f"{channel.name}.")}
+    return {k: v for k, v in {**channel.params, **section}.items() if k in PARAMETERS}
+
+
 class _DiagnosticsPort:
     """What a channel publishes /diagnostics on: its status goes into the node's one array."""
 
@@ -88,10 +96,7 @@ class ChannelCore(IdentificationCore):
     def __init__(self, host, channel: Channel, merger: DiagnosticsMerger) -> None:
         self._host, self.channel, self._merger = host, channel, merger
         self._init_state()
-        section = {k.split(".", 1)[1]: v.value for k, v in host._parameter_overrides.items()
-                   if k.startswith(f"{channel.name}.")}
-        self._values = {name: host._declared_value(name) for name in PARAMETERS}
-        self._values |= {k: v for k, v in {**channel.params, **section}.items() if k in PARAMETERS}
+        self._values = {name: host._declared_value(name) for name in PARAMETERS} | channel_values(host, channel)
 
     def __getattr__(self, name: str):  # the rclpy Node API: the host's
         if name.startswith("__") or "_host" not in self.__dict__:

@@ -409,14 +409,14 @@ class IdentificationCore:
         """Check every parameter (UsageError naming the first bad one) and build the engine, the
         publishers, the output_mcap writer and the Foxglove server; with several ``channels`` in
         the params file, a ``channels.ChannelSet`` of one such core per channel instead."""
-        from .channels import ChannelSet
+        from .channels import ChannelSet, channel_values
 
         channels = self._file_channels()
         if len(channels) > 1:
             self.channel_set = ChannelSet(self, channels)
             return
         if channels:  # one channel: its parameters are the node's
-            self._apply_parameters(channels[0].params)
+            self._apply_parameters(channel_values(self, channels[0]))
         self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
         config = engine_config(self.values)
         for stream in self._streams():  # fail fast on a bad configuration
@@ -457,7 +457,7 @@ class IdentificationCore:
         """Set the node parameters of ``params`` that differ from the declared ones (UsageError
         naming the first refused)."""
         changes = [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in params.items()
-                   if k in PARAMETERS and v != self._declared_value(k)]
+                   if v != self._declared_value(k)]
         for change in changes:
             result = self.set_parameters([change])[0]
             if not result.successful:
