@@ -1,8 +1,9 @@
 """Several channels in one live node: a params file with three channels over one
 sensor_msgs/JointState topic (joints by name) and one std_msgs/Float64MultiArray command topic,
 fed in real time by this process from three known Hammerstein plants; each channel's
-~/NAME/model converges to its own plant's poles, /diagnostics carries one status per channel,
-and ~/solve answers for every channel. A bad channels list exits 2 with one line."""
+~/NAME/model converges to its own plant's poles, /diagnostics carries one status per channel
+(a message without one joint counted by that joint's channel alone), and ~/solve answers for
+every channel. A bad channels list exits 2 with one line."""
 
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ PLANTS = {"shoulder": LinearModel.from_zeros_poles([-0.5], [0.9 + 0.2j, 0.9 - 0.
           "elbow": LinearModel.from_zeros_poles([-0.5], [0.8 + 0.4j, 0.8 - 0.4j], dc_gain=1.0),
           "wrist": LinearModel.from_zeros_poles([], [0.7], dc_gain=1.0)}  # first order: its own `order: 1`
 POLE_TOLERANCE = 0.02
+MISSING = 5  # JointState messages without elbow_joint, sent last
 WINDOW = 1000  # the window of PARAMS
 PARAMS = """\
 hammer_ros:
@@ -77,9 +79,9 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
     listener = Listener(ros_env)
     try:
         models = {name: listener.subscribe_json(f"/hammer_ros/{name}/model") for name in JOINTS}
-        arrays: list[list[str]] = []
-        listener.node.create_subscription(DiagnosticArray, "/diagnostics",
-                                          lambda m: arrays.append([s.name for s in m.status]), 10)
+        arrays: list[dict[str, dict[str, str]]] = []  # per /diagnostics: status name -> values
+        listener.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: arrays.append(
+            {s.name: {kv.key: kv.value for kv in s.values} for s in m.status}), 10)
         cmd = listener.node.create_publisher(Float64MultiArray, "/arm/cmd", 100)
         joints = listener.node.create_publisher(JointState, "/arm/joint_states", 100)
         listener.wait_for(lambda: cmd.get_subscription_count() and joints.get_subscription_count(),
@@ -107,7 +109,7 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
             print(f"{name}: pole RSS error {_pole_error(name, models[name][-1]):.4f} after "
                   f"{models[name][-1]['samples']} samples")
         expected = [f"hammer_ros/{name}: identification" for name in JOINTS]
-        listener.wait_for(lambda: arrays and arrays[-1] == expected, what="one /diagnostics status per channel")
+        listener.wait_for(lambda: arrays and list(arrays[-1]) == expected, what="one /diagnostics status per channel")
         client = listener.node.create_client(Trigger, "/hammer_ros/solve")
         listener.wait_for(client.service_is_ready, what="~/solve")
         answer = listener.wait_future(client.call_async(Trigger.Request()))
@@ -115,6 +117,17 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
         solved = json.loads(answer.message)
         assert set(solved) == set(JOINTS)
         assert all(_pole_error(name, solved[name]) < POLE_TOLERANCE for name in JOINTS)
+        others = [j for j in names if j != "elbow_joint"]
+        for _ in range(MISSING):  # without elbow_joint: counted by the elbow channel alone
+            joints.publish(JointState(name=others, velocity=[0.0] * len(others)))
+
+        def field_errors() -> dict[str, int]:
+            return {name.split("/")[1].split(":")[0]: int(values["response_field_errors"])
+                    for name, values in (arrays[-1] if arrays else {}).items()}
+
+        listener.wait_for(lambda: field_errors() == {"shoulder": 0, "elbow": MISSING, "wrist": 0},
+                          what=f"{MISSING} field errors of the elbow channel alone")
+        assert node.poll() is None
     finally:
         listener.close()
         node.send_signal(signal.SIGINT)
