@@ -511,7 +511,9 @@ def joint_state_run(session: ProbeSession, rate: float, seconds: float, joints: 
             ident.communicate(timeout=20)
             node.destroy_subscription(diagnostics)
     return {"joints": joints, "rate_msgs_per_s": rate, "bare_messages": bare["messages"], "bare_received": count[0],
-            "node_messages": sent["messages"], "node_received": received()}
+            "node_messages": sent["messages"], "node_received": received(),
+            **{f"node_{what}": max((int(v.get(f"response_{what}", 0)) for v in statuses.values()), default=0)
+               for what in ("dds_lost", "queue_dropped")}}
 
 
 SUBSCRIBERS = ("bare", "node", "foxglove")
