@@ -18,18 +18,17 @@ import threading
 from dataclasses import fields
 from typing import Any
 
-from ..errors import UsageError
-from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels
-from ..streaming.config import EngineConfig
-from .node_core import (
-    PARAMETERS,
-    IdentificationCore,
-    _Input,
-    _normal_type,
-    built_reader,
-    message_class,
-)
-from .outputs import message_class as output_message_class
+from .environment import prepare_ros_environment
+
+prepare_ros_environment()
+
+from rclpy.lifecycle import LifecycleNode  # noqa: E402
+
+from ..errors import UsageError  # noqa: E402
+from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
+from ..streaming.config import EngineConfig  # noqa: E402
+from .node_core import PARAMETERS, IdentificationCore, _Input, _normal_type, built_reader, message_class  # noqa: E402
+from .outputs import message_class as output_message_class  # noqa: E402
 
 REPLAY_KEYS = {f.name for f in fields(EngineConfig)} | set(TOPIC_KEYS) | set(OTHER_KEYS)
 SOURCE = "params file"
@@ -160,7 +159,7 @@ class ChannelSet:
     ``ChannelCore`` each, configured at once (a bad channel is a UsageError naming it)."""
 
     def __init__(self, host, channels: list[Channel]) -> None:
-        if host.__class__.__name__ == "ManagedIdentificationNode":
+        if isinstance(host, LifecycleNode):
             raise UsageError(f"{SOURCE}: channels: several channels need the unmanaged node (without --managed)")
         self.host = host
         self.merger = DiagnosticsMerger(
