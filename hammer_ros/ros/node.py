@@ -55,6 +55,7 @@ def usage() -> str:
              "", "Live Hammerstein identification: subscribes to excitation_topic and response_topic, publishes",
              "~/model (JSON, transient local), ~/poles, ~/zeros, ~/markov, ~/nonlinearity and /diagnostics;",
              "services ~/reset, ~/solve, ~/diagnose (std_srvs/srv/Trigger); with foxglove_port a Foxglove server.",
+             "A params file with a channels list identifies every channel, its outputs under ~/NAME/ (docs/node.md).",
              "", "  --managed          run as a lifecycle (managed) node: idle until configured and activated",
              "", "parameters (default):"]
     for name, spec in PARAMETERS.items():

@@ -273,6 +273,7 @@ class _Input:
         self._lost_status = None  # the subscription's message-lost status, read by ``dds_lost``
         self._lost_before = 0  # messages lost by the subscriptions before this one
         self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
+        self.shared: _Input | None = None  # the subscription of a topic read by several channels (``channels``)
 
     def subscribe(self, node, cls, topic: str, callback: Callable, qos: QoSProfile, raw: bool) -> None:
         """(Re)subscribe. The middleware's message-lost status is read when asked (``dds_lost``),
@@ -301,6 +302,8 @@ class _Input:
 
     def dds_lost(self) -> int:
         """Messages the middleware reports lost before the callback, over all subscriptions."""
+        if self.shared is not None:
+            return self.shared.dds_lost()
         status = self._lost_status
         if status is None:
             return self._lost_before
@@ -314,6 +317,8 @@ class _Input:
         """Publishers matched with the subscription (0 when unsubscribed): the middleware delivers
         only their messages, so 0 while a publisher is still being discovered or has a QoS that
         cannot match."""
+        if self.shared is not None:
+            return self.shared.publishers()
         try:
             return self.subscription.get_publisher_count() if self.subscription is not None else 0
         except InvalidHandle:  # destroyed meanwhile (deactivate): none
@@ -338,6 +343,11 @@ def _queueing_callback(source: _Input) -> Callable[[Any], None]:
     return on_message
 
 
+def built_reader(path: FieldPath) -> Callable[[Any], tuple]:
+    """``read`` of messages built by rclpy: (samples at ``path``, header stamp or 0.0)."""
+    return lambda msg: (extract_samples(msg, path), message_stamp(msg) or 0.0)
+
+
 def _drained(queue: deque) -> list:
     """What ``queue`` holds now, taken out (the callback may append meanwhile)."""
     return [queue.popleft() for _ in range(len(queue))]
@@ -358,6 +368,12 @@ class IdentificationCore:
                 self.declare_parameter(name, default, _descriptor(name, spec))
             except ParameterException as exc:  # an override outside the descriptor's range or type
                 raise UsageError(f"{name}: {' '.join(str(exc).split())}") from None
+        self._init_state()
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.trigger_services = NodeServices(self)
+
+    def _init_state(self) -> None:
+        """The state of an unconfigured node (or of one channel of ``channels.ChannelSet``)."""
         self._lock = threading.Lock()  # guards the engine and the stamper
         self._solve_lock = threading.Lock()  # one solve at a time (the solver thread, ~/solve)
         self._diagnose_lock = threading.RLock()  # one diagnosis at a time (the diagnosis thread, ~/diagnose)
@@ -381,8 +397,7 @@ class IdentificationCore:
         self.closed_loop: bool | None = None  # the last diagnosis's ``closed_loop`` verdict (None: none yet)
         self.loop_errors = 0  # unexpected exceptions in the ingest/solve loops (logged; the loops go on)
         self._cpu_mark = (time.monotonic(), time.process_time())  # ``_cpu_percent``'s last reading
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.trigger_services = NodeServices(self)
+        self.channel_set = None  # channels.ChannelSet when the params file has several channels
 
     def _create_output_publisher(self, cls, topic: str, qos):
         return self.create_publisher(cls, topic, qos)
@@ -392,7 +407,16 @@ class IdentificationCore:
 
     def configure(self) -> None:
         """Check every parameter (UsageError naming the first bad one) and build the engine, the
-        publishers, the output_mcap writer and the Foxglove server."""
+        publishers, the output_mcap writer and the Foxglove server; with several ``channels`` in
+        the params file, a ``channels.ChannelSet`` of one such core per channel instead."""
+        from .channels import ChannelSet, channel_values
+
+        channels = self._file_channels()
+        if len(channels) > 1:
+            self.channel_set = ChannelSet(self, channels)
+            return
+        if channels:  # one channel: its parameters are the node's
+            self._apply_parameters(channel_values(self, channels[0]))
         self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
         config = engine_config(self.values)
         for stream in self._streams():  # fail fast on a bad configuration
@@ -423,12 +447,30 @@ class IdentificationCore:
             f"{self.values['response_topic']}:{self.values['response_field']} with {self.values['method']} "
             f"(order {self.values['order']}, delay {self.values['delay']}, window {self.values['window']}){serving}")
 
+    def _file_channels(self) -> list:
+        """The ``channels`` of the params file (``channels.file_channels``)."""
+        from .channels import file_channels
+
+        return file_channels(self)
+
+    def _apply_parameters(self, params: dict[str, Any]) -> None:
+        """Set the node parameters of ``params`` that differ from the declared ones (UsageError
+        naming the first refused)."""
+        changes = [Parameter(k, value=list(v) if isinstance(v, tuple) else v) for k, v in params.items()
+                   if v != self._declared_value(k)]
+        for change in changes:
+            result = self.set_parameters([change])[0]
+            if not result.successful:
+                raise UsageError(f"{change.name}: {result.reason}")
+
     def activate(self) -> None:
         """Subscribe to the inputs and start the ingest, solve and diagnosis threads; with a solver
         process, once it is ready (at most WORKER_READY_SECONDS): its start, about 0.7 s of CPU
         for imports, would otherwise compete with the first second of ingestion (2-core bench VM,
         a fresh node fed 20 000 - 32 000 100-sample messages/s per topic for 3 s as soon as it
         reported its subscriptions: lossy in 10 of 18 runs without the wait, 4 of 18 with it)."""
+        if self.channel_set is not None:
+            return self.channel_set.activate()
         if self.solver is not None and not self.solver.wait_ready(WORKER_READY_SECONDS):
             self.get_logger().warning(f"the solver process is not ready after {WORKER_READY_SECONDS:g} s; "
                                       "subscribing anyway (solves wait for it)")
@@ -445,6 +487,8 @@ class IdentificationCore:
     def deactivate(self, publish: bool = True) -> None:
         """Stop ingesting: unsubscribe, stop the threads (a running solve is waited for up to 1 s),
         move the queued samples in; with ``publish`` the counters at this point on /diagnostics."""
+        if self.channel_set is not None:
+            return self.channel_set.deactivate(publish)
         self.active = False
         for source in self.inputs.values():
             source.unsubscribe(self)
@@ -453,12 +497,16 @@ class IdentificationCore:
         if publish:
             with self._lock:
                 stats = self.engine.stats.copy()
-            diagnostics = diagnostics_message(stats, self.last_outcome, self._now(), self.get_name())
+            diagnostics = diagnostics_message(stats, self.last_outcome, self._now(), self._status_name())
             self._add_node_diagnostics(diagnostics["status"][0])
             self._outputs["/diagnostics"].publish(to_ros_message("diagnostic_msgs/msg/DiagnosticArray", diagnostics))
 
     def cleanup(self) -> None:
         """Release what ``configure`` built (the last model is forgotten)."""
+        if self.channel_set is not None:
+            self.channel_set.cleanup()
+            self.channel_set = None
+            return
         if self.server is not None:
             self.server.stop()
             self.server = None
@@ -474,7 +522,10 @@ class IdentificationCore:
 
     def close(self) -> SolveOutcome | None:
         """On shutdown: stop ingesting, solve once more, finish output_mcap, release everything;
-        returns the final outcome (None if there was none)."""
+        returns the final outcome (None if there was none; with several channels, always None)."""
+        if self.channel_set is not None:
+            self.channel_set.close()
+            self.channel_set = None
         if self.active:
             self.deactivate(publish=False)
         outcome = None
@@ -483,6 +534,10 @@ class IdentificationCore:
             self.cleanup()
         self.trigger_services.close()
         return outcome
+
+    def _status_name(self) -> str:
+        """The name of the node's status on /diagnostics (before ': identification')."""
+        return self.get_name()
 
     def _now(self) -> int:
         """The node clock in integer nanoseconds (the stamp of what the node publishes)."""
@@ -499,17 +554,21 @@ class IdentificationCore:
 
     # ------------------------------------------------------------------ inputs
     def _subscribe(self, stream: str) -> None:
+        source, cls, qos = self._prepare_input(stream)
+        source.subscribe(self, cls, self.values[f"{stream}_topic"], _queueing_callback(source), qos,
+                         raw=source.raw is not None)
+
+    def _prepare_input(self, stream: str) -> tuple[_Input, Any, QoSProfile]:
+        """The input of ``stream`` made ready to read its messages: (input, message class, QoS)."""
         source = self.inputs[stream]
         cls = message_class(self.values[f"{stream}_type"])
         source.path = parse_field_path(self.values[f"{stream}_field"])
         source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
-        source.read = source.raw or (lambda msg, path=source.path: (extract_samples(msg, path),
-                                                                     message_stamp(msg) or 0.0))
+        source.read = source.raw or built_reader(source.path)
         qos = QoSProfile(depth=self.values["qos_depth"], reliability=qos_profile_sensor_data.reliability,
                          durability=qos_profile_sensor_data.durability, history=qos_profile_sensor_data.history)
         source.pending_limit = max(1, self.values["max_pending"] // source.message_samples)
-        source.subscribe(self, cls, self.values[f"{stream}_topic"], _queueing_callback(source), qos,
-                         raw=source.raw is not None)
+        return source, cls, qos
 
     def _new_engine(self, config: EngineConfig) -> StreamingEngine:
         """An empty engine of ``config`` (holding the reference when ``reference_topic`` is set)."""
@@ -637,6 +696,9 @@ class IdentificationCore:
         return result.successful, result.reason
 
     def _on_set_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
+        if self.channel_set is not None:
+            return SetParametersResult(successful=False, reason="several channels: their parameters are read from "
+                                       "the params file at startup")
         try:
             current = dict(self.values) if self.engine is not None else {
                 name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
@@ -794,7 +856,7 @@ class IdentificationCore:
             self.last_outcome = outcome
         elif self.last_outcome is not None:
             messages.append(stale_model_message(self.last_outcome, outcome))
-        diagnostics = diagnostics_message(stats, outcome, stamp, self.get_name())
+        diagnostics = diagnostics_message(stats, outcome, stamp, self._status_name())
         self._add_node_diagnostics(diagnostics["status"][0])
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         self._send(messages, stamp, publish)
@@ -912,6 +974,8 @@ class IdentificationCore:
 
     def reset_window(self) -> tuple[bool, str]:
         """~/reset: clear the window and the correlation sums (and the counters); parameters stay."""
+        if self.channel_set is not None:
+            return self.channel_set.each("reset_window")
         if self._refusal():
             return False, self._refusal()
         with self._solve_lock, self._lock:
@@ -926,6 +990,8 @@ class IdentificationCore:
 
     def solve_now(self) -> tuple[bool, str]:
         """~/solve: solve and publish now; the model JSON, or why there is none."""
+        if self.channel_set is not None:
+            return self.channel_set.each("solve_now")
         if self._refusal():
             return False, self._refusal()
         outcome = self._solve_once()
@@ -935,6 +1001,8 @@ class IdentificationCore:
 
     def diagnose_now(self) -> tuple[bool, str]:
         """~/diagnose: diagnose the window now and publish it; the diagnosis JSON, or why not."""
+        if self.channel_set is not None:
+            return self.channel_set.each("diagnose_now")
         if self._refusal():
             return False, self._refusal()
         with self._diagnose_lock:

@@ -34,6 +34,7 @@ from ..ros.environment import DomainLease, child_environment, prepare_ros_enviro
 from .process_status import child_pids, process_cpu_seconds, process_status_kib
 
 TOPICS = ("/command", "/response")
+JOINT_TOPIC = "/joint_states"  # ``--joints N``: one JointState of N named joints (position u, velocity y)
 MATCH_TIMEOUT = 15.0
 PUBLISHER_MATCH_TIMEOUT = 2 * MATCH_TIMEOUT  # the publisher starts beside a node that starts up (``_node``)
 SETTLE_SECONDS = 1.0
@@ -98,7 +99,15 @@ class Schedule:
             sleep(max(0.0, self.slot(self.sent) - clock()))
 
 
-def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> int:
+def _joint_state(joints: int):
+    """The JointState of the ``--joints`` runs: joints joint_0.. with positions and velocities."""
+    from sensor_msgs.msg import JointState
+
+    values = [float(i) / joints for i in range(joints)]
+    return JointState(name=[f"joint_{i}" for i in range(joints)], position=values, velocity=values)
+
+
+def _publish(rate: float, seconds: float, batch: int, plant: bool = False, joints: int = 0) -> int:
     """Publisher process: wait for a subscriber on both topics, say so (a line on stdout), wait for
     the go (a line on stdin: ``_start_when_subscribed``), publish on a ``Schedule``, print the count
     sent and the stalls. The same message every time, or (``plant``) a Hammerstein record cycled.
@@ -110,7 +119,8 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     rclpy.init()
     node = rclpy.create_node("rate_probe_publisher")
     msg_type = Float64 if batch == 1 else Float64MultiArray
-    pubs = [node.create_publisher(msg_type, topic, 1000) for topic in TOPICS]
+    pubs = ([node.create_publisher(type(_joint_state(joints)), JOINT_TOPIC, 1000)] if joints else
+            [node.create_publisher(msg_type, topic, 1000) for topic in TOPICS])
     deadline = time.monotonic() + PUBLISHER_MATCH_TIMEOUT
     while any(p.get_subscription_count() == 0 for p in pubs) and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -118,7 +128,7 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     sys.stdin.readline()  # the subscriber has matched both writers too
     values = [float(i % 97) / 97.0 for i in range(batch)]
     message = Float64(data=0.5) if batch == 1 else Float64MultiArray(data=values)
-    pairs = _plant_messages(batch) if plant else [(message, message)]
+    pairs = _plant_messages(batch) if plant else [(_joint_state(joints),)] if joints else [(message, message)]
     def send(k: int) -> None:
         for pub, msg in zip(pubs, pairs[k % len(pairs)]):
             pub.publish(msg)
@@ -135,9 +145,11 @@ def _publish(rate: float, seconds: float, batch: int, plant: bool = False) -> in
     return 0
 
 
-def _start_publisher(env: dict, rate: float, seconds: float, batch: int, plant: bool = False) -> subprocess.Popen:
+def _start_publisher(env: dict, rate: float, seconds: float, batch: int, plant: bool = False,
+                     joints: int = 0) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "hammer_ros.tools.ros_rate_probe", "--publish", "--rates", str(rate),
-           "--seconds", str(seconds), "--batch", str(batch), *(["--plant"] if plant else [])]
+           "--seconds", str(seconds), "--batch", str(batch), *(["--plant"] if plant else []),
+           *(["--joints", str(joints)] if joints else [])]
     return subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 
@@ -428,6 +440,82 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
 
 
+def joint_state_params(path, joints: int, rate: float) -> None:
+    """A node params file of ``joints`` channels joint_0.. over JOINT_TOPIC (u = position[joint_k],
+    y = velocity[joint_k])."""
+    lines = ["hammer_ros:", "  ros__parameters:", f"    excitation_topic: {JOINT_TOPIC}",
+             "    excitation_type: sensor_msgs/msg/JointState", f"    response_topic: {JOINT_TOPIC}",
+             "    response_type: sensor_msgs/msg/JointState", f"    sample_rate: {float(rate)}", "    solve_rate: 4.0",
+             "    window: 4000", f"    channels: [{', '.join(f'joint_{k}' for k in range(joints))}]"]
+    lines += [f'    joint_{k}: {{excitation_field: "position[joint_{k}]", response_field: "velocity[joint_{k}]"}}'
+              for k in range(joints)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def joint_state_run(session: ProbeSession, rate: float, seconds: float, joints: int) -> dict:
+    """One run of ``joints`` channels from one JointState topic at ``rate`` messages/s: the bare
+    subscriber's count of the topic's messages and the node's smallest per-channel count of
+    received samples (its /diagnostics, one status per channel); {bare, node, messages}."""
+    import tempfile
+    from pathlib import Path
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import QoSProfile, qos_profile_sensor_data
+    from rclpy.task import Future
+
+    from ..ros.node_core import PARAMETERS
+
+    node, executor, env = session.node, session.executor, session.env
+    never = Future()
+    count = [0]
+    qos = QoSProfile(depth=PARAMETERS["qos_depth"].default, reliability=qos_profile_sensor_data.reliability,
+                     durability=qos_profile_sensor_data.durability)
+    sub = node.create_subscription(type(_joint_state(joints)), JOINT_TOPIC,
+                                   lambda m: count.__setitem__(0, count[0] + 1), qos)
+    publisher = _start_publisher(env, rate, seconds, 1, joints=joints)
+    _start_when_subscribed(publisher, executor, lambda: sub.get_publisher_count() > 0)
+    while not _result_ready(publisher):
+        executor.spin_until_future_complete(never, timeout_sec=0.05)
+    bare = _result(publisher)
+    _spin_until(executor, lambda: count[0] >= bare["messages"], SETTLE_SECONDS)
+    _reap(publisher)
+    node.destroy_subscription(sub)
+    statuses: dict[str, dict[str, str]] = {}
+
+    def on_diagnostics(msg) -> None:
+        for status in msg.status:
+            statuses[status.name] = {kv.key: kv.value for kv in status.values}
+
+    diagnostics = node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+
+    def received() -> int:
+        keys = ("received_excitation", "received_response")
+        return min((int(v.get(k, 0)) for v in statuses.values() for k in keys), default=0)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        params = Path(tmp) / "joints.yaml"
+        joint_state_params(params, joints, rate)
+        ident = subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file",
+                                  str(params)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        publisher = _start_publisher(env, rate, seconds, 1, joints=joints)
+        try:
+            _spin_until(executor, lambda: len(statuses) == joints and all(
+                int(v.get("excitation_publishers", 0)) for v in statuses.values()), 2 * MATCH_TIMEOUT)
+            _start_when_subscribed(publisher, executor, lambda: True)
+            _spin_until(executor, lambda: _result_ready(publisher), 120)
+            sent = _result(publisher)
+            _spin_until(executor, lambda: received() >= sent["messages"], SETTLE_SECONDS + 1.0)
+        finally:
+            _reap(publisher)
+            ident.terminate()
+            ident.communicate(timeout=20)
+            node.destroy_subscription(diagnostics)
+    return {"joints": joints, "rate_msgs_per_s": rate, "bare_messages": bare["messages"], "bare_received": count[0],
+            "node_messages": sent["messages"], "node_received": received(),
+            **{f"node_{what}": max((int(v.get(f"response_{what}", 0)) for v in statuses.values()), default=0)
+               for what in ("dds_lost", "queue_dropped")}}
+
+
 SUBSCRIBERS = ("bare", "node", "foxglove")
 
 
@@ -494,11 +582,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--foxglove", action="store_true", help="also the node with its Foxglove server and a client")
     parser.add_argument("--publish", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--plant", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--joints", type=int, default=0,
+                        help="one JointState topic of N joints read by N channels of one node (vs a bare subscriber)")
     args = parser.parse_args(argv)
     rates = [float(r) for r in args.rates.split(",")]
     if args.publish:
         prepare_ros_environment()
-        return _publish(rates[0], args.seconds, args.batch, args.plant)
+        return _publish(rates[0], args.seconds, args.batch, args.plant, args.joints)
+    if args.joints:
+        with ProbeSession() as session:
+            for rate in rates:
+                print(json.dumps(joint_state_run(session, rate, args.seconds, args.joints)), flush=True)
+        return 0
     probe(rates, args.batch, args.seconds, args.foxglove)
     return 0
 
