@@ -239,3 +239,17 @@ class ChannelSet:
             except json.JSONDecodeError:  # ~/reset answers in words
                 answers[core.channel.name] = {"message": message}
         return success, json.dumps(answers, allow_nan=False)
+
+
+class ChannelSupport:
+    """The node classes' ``channels`` hooks of ``IdentificationCore.configure``: the params file's
+    channels (``file_channels``), a ``ChannelSet`` for several, one channel's parameters."""
+
+    def _file_channels(self) -> list[Channel]:
+        return file_channels(self)
+
+    def _channel_set(self, channels: list[Channel]) -> ChannelSet:
+        return ChannelSet(self, channels)
+
+    def _channel_values(self, channel: Channel) -> dict[str, Any]:
+        return channel_values(self, channel)

@@ -21,10 +21,11 @@ prepare_ros_environment()
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
+from .channels import ChannelSupport  # noqa: E402
 from .node_core import NODE_NAME, IdentificationCore  # noqa: E402
 
 
-class ManagedIdentificationNode(IdentificationCore, LifecycleNode):
+class ManagedIdentificationNode(ChannelSupport, IdentificationCore, LifecycleNode):
     """The identification node with the lifecycle states unconfigured / inactive / active / finalized."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:

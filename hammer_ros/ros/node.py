@@ -22,6 +22,7 @@ from rclpy.task import Future  # noqa: E402
 from rclpy.utilities import remove_ros_args  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
+from .channels import ChannelSupport  # noqa: E402
 from .managed_node import ManagedIdentificationNode  # noqa: E402
 from .node_core import NODE_NAME, PARAMETERS, IdentificationCore  # noqa: E402
 
@@ -32,7 +33,7 @@ from .node_core import NODE_NAME, PARAMETERS, IdentificationCore  # noqa: E402
 CHECK_SECONDS = 0.5
 
 
-class IdentificationNode(IdentificationCore, Node):
+class IdentificationNode(ChannelSupport, IdentificationCore, Node):
     """The unmanaged node (the default): configured and active from construction."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:

@@ -409,14 +409,12 @@ class IdentificationCore:
         """Check every parameter (UsageError naming the first bad one) and build the engine, the
         publishers, the output_mcap writer and the Foxglove server; with several ``channels`` in
         the params file, a ``channels.ChannelSet`` of one such core per channel instead."""
-        from .channels import ChannelSet, channel_values
-
         channels = self._file_channels()
         if len(channels) > 1:
-            self.channel_set = ChannelSet(self, channels)
+            self.channel_set = self._channel_set(channels)
             return
         if channels:  # one channel: its parameters are the node's
-            self._apply_parameters(channel_values(self, channels[0]))
+            self._apply_parameters(self._channel_values(channels[0]))
         self.values = {name: _coerce(name, self._declared_value(name)) for name in PARAMETERS}
         config = engine_config(self.values)
         for stream in self._streams():  # fail fast on a bad configuration
@@ -447,11 +445,16 @@ class IdentificationCore:
             f"{self.values['response_topic']}:{self.values['response_field']} with {self.values['method']} "
             f"(order {self.values['order']}, delay {self.values['delay']}, window {self.values['window']}){serving}")
 
+    # the channels of the params file: ``channels.ChannelSupport`` (a mixin of the node classes, so that this
+    # module, which ``channels`` builds on, does not import it)
     def _file_channels(self) -> list:
-        """The ``channels`` of the params file (``channels.file_channels``)."""
-        from .channels import file_channels
+        raise NotImplementedError("a node class mixes in channels.ChannelSupport")
 
-        return file_channels(self)
+    def _channel_set(self, channels: list):
+        raise NotImplementedError("a node class mixes in channels.ChannelSupport")
+
+    def _channel_values(self, channel) -> dict[str, Any]:
+        raise NotImplementedError("a node class mixes in channels.ChannelSupport")
 
     def _apply_parameters(self, params: dict[str, Any]) -> None:
         """Set the node parameters of ``params`` that differ from the declared ones (UsageError
