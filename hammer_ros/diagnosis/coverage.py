@@ -81,11 +81,6 @@ def input_coverage(v_est: np.ndarray, v_val: np.ndarray, memory: int) -> InputCo
     return InputCoverage(lo, hi, float(np.min(v_val)), float(np.max(v_val)), float(np.mean(~inside)), covered, memory)
 
 
-def judged_split(split: Split, coverage: InputCoverage) -> Split:
-    """The split judged on the covered validation samples when the coverage row fails."""
-    return replace(split, judged=coverage.judged())
-
-
 def auto_split(v: np.ndarray, y: np.ndarray) -> Split:
     """An estimation part that covers the validation input's range where the record allows it:
     the validation part is the last or the first 30 %, 25 % or 20 % of the record (in that order

@@ -25,7 +25,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -33,7 +33,7 @@ from scipy import stats
 from ..identification.result import fit_percent, rms_error, strict_json
 from .chain import Chain, Step, extend_chain
 from .closed_loop import closed_loop_evidence
-from .coverage import input_coverage, judged_split
+from .coverage import input_coverage
 from .evidence import (
     CauseTest,
     LineTest,
@@ -146,7 +146,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5))
     judgeable = coverage.passed or int(np.count_nonzero(coverage.covered)) >= MIN_SAMPLES
     if judgeable:
-        split = judged_split(split, coverage)
+        split = replace(split, judged=coverage.judged())
     x_est = base.simulate(split.v_est)
     x_val = split.validation_output(base.simulate)
     e_val = split.y_val - x_val
@@ -205,15 +205,15 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         if blind:
             cause = max(blind, key=blind.get)
             found_by = "a search of every extension (no significant signature led to a gain; the residual tests failed)"
-    # the candidates the validation data cannot tell from the named one: said (``within_noise_of``, a low
-    # confidence), not hidden behind a few per cent of RMS
-    tied = _within_noise(split, extensions, gains, cause) if cause != "none" else []
     coverage_json = coverage.to_json()
     if not judgeable:  # hardly a validation sample in the estimation range: nothing to name a cause from
         cause, found_by = "none", ""
         coverage_json["judged_on"] += (f"; only {int(np.count_nonzero(coverage.covered))} validation samples are "
                                        f"covered (fewer than {MIN_SAMPLES}): every sample is judged and no cause is "
                                        "named")
+    # the candidates the validation data cannot tell from the named one: said (``within_noise_of``, a low
+    # confidence), not hidden behind a few per cent of RMS
+    tied = _within_noise(split, extensions, gains, cause) if cause != "none" else []
     evidence = (coverage.evidence(), *(t.evidence() for t in correlation), *(t.evidence for t in cause_tests))
     confidence = _confidence(cause, gains, evidence) * (TIED_CONFIDENCE if tied else 1.0)
     evidence += (closed_loop_evidence(split.v_val[rows], e_val[rows]),)

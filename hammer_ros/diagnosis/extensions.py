@@ -52,7 +52,7 @@ from .hammerstein import (
     transient_samples,
 )
 from .servo_loop import fit_servo_loop
-from .split import INITIAL_SAMPLES, Split, rest_input
+from .split import INITIAL_SAMPLES, Split, held_back, rest_input
 from .storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .wiener_hammerstein import (
     WienerHammersteinFit,
@@ -585,7 +585,7 @@ def servo_loop_model(ctx: Context) -> ExtendedModel:
     simulate = fit.simulate
     output = s.validation_output(simulate)
     f, h, phi = fit.layout.maps(fit.theta)
-    e = s.v_est - s.y_est
+    e = held_back(s.v_est, fit.layout.delay) - s.y_est
     maps = (map_plot("f (controller on the loop error u - y)", f, e),
             map_plot("h (output feedback: gravity)", h, s.y_est),
             map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))

@@ -90,7 +90,7 @@ class ServoLayout:
 
     @property
     def output_primary(self) -> int:
-        return max(1, self.output_part.size // 2 + 1) if self.output_part.size > 1 else 1
+        return self.output_part.size // 2 + 1
 
     @property
     def speed_primary(self) -> int:

@@ -140,18 +140,28 @@ def storage_cascade(drive: np.ndarray, first, between, second, compiled: bool | 
     values, slopes, quadratic tails as in ``feedback_loop``). ``compiled`` as in ``feedback_loop``."""
     args = [np.ascontiguousarray(drive, dtype=float)]
     for m in (first, between, second):
-        args += [np.ascontiguousarray(part, dtype=float) for part in (m.breakpoints, m.values, m.slopes)]
-        args += [float(m.curvature_left), float(m.curvature_right)]
+        args += [*_map_arrays(m), float(m.curvature_left), float(m.curvature_right)]
+    return _recursion("cascade", _cascade_core, args, compiled)
+
+
+def _map_arrays(m) -> list[np.ndarray]:
+    """(knots, values, slopes) of a ``PiecewiseLinearMap`` as contiguous float arrays."""
+    return [np.ascontiguousarray(part, dtype=float) for part in (m.breakpoints, m.values, m.slopes)]
+
+
+def _recursion(name: str, core, args: list, compiled: bool | None) -> np.ndarray:
+    """Run the recursion ``core(*args, y)`` whose output y has the length of ``args[0]``: its numba
+    kernel ``name`` (``compiled`` as in ``feedback_loop``), or the core itself on lists."""
     use = numba_enabled() if compiled is None else compiled
     if use:
-        kernel = _kernel("cascade")
+        kernel = _kernel(name)
         if kernel is None:
             raise ImportError("numba is not available")
         y = np.empty(args[0].size)
         kernel(*args, y)
         return y
     y = [0.0] * args[0].size
-    _cascade_core(*[a.tolist() if isinstance(a, np.ndarray) else a for a in args], y)
+    core(*[a.tolist() if isinstance(a, np.ndarray) else a for a in args], y)
     return np.asarray(y, dtype=float)
 
 
@@ -205,18 +215,8 @@ def servo_loop(u: np.ndarray, y0: float, error_map, gravity_map, friction_map, c
     as in ``feedback_loop``."""
     args = [np.ascontiguousarray(u, dtype=float), float(y0), float(coulomb)]
     for m in (error_map, gravity_map, friction_map):
-        args += [np.ascontiguousarray(part, dtype=float) for part in (m.breakpoints, m.values, m.slopes)]
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel("servo")
-        if kernel is None:
-            raise ImportError("numba is not available")
-        y = np.empty(args[0].size)
-        kernel(*args, y)
-        return y
-    y = [0.0] * args[0].size
-    _servo_core(*[a.tolist() if isinstance(a, np.ndarray) else a for a in args], y)
-    return np.asarray(y, dtype=float)
+        args += _map_arrays(m)
+    return _recursion("servo", _servo_core, args, compiled)
 
 
 def _servo_core(u, y0, coulomb, fk, fv, fs, hk, hv, hs, pk, pv, ps, y):
