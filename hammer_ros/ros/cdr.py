@@ -576,7 +576,7 @@ class TopicDecoder:
         blocks, each block's rows matched to the kept plans at once, a new layout walked once."""
         m, k = len(messages), len(self.paths)
         values, bad, stamps = np.zeros((m, k)), np.zeros((m, k), bool), np.zeros(m)
-        errors = [""] * k
+        errors = [(-1, "")] * k  # (the last bad message, why) per field
         lengths = np.fromiter(map(len, messages), np.intp, m)
         for length in np.unique(lengths):
             rows = np.flatnonzero(lengths == length)
@@ -597,20 +597,21 @@ class TopicDecoder:
                     self._plans.insert(0, self._plan(first))
                     del self._plans[self.MAX_PLANS:]
                 except FieldError as exc:  # a message that cannot be walked: bad for every field
-                    bad[rows[left[0]]] = True
-                    errors[:] = [f"field {p.text!r}: {exc}" for p in self.paths]
+                    row = rows[left[0]]
+                    bad[row] = True
+                    errors[:] = [max(e, (row, f"field {p.text!r}: {exc}")) for e, p in zip(errors, self.paths)]
                     left = left[1:]
-        return Decoded(values, bad, stamps, tuple(errors))
+        return Decoded(values, bad, stamps, tuple(why for _, why in errors))
 
     def _apply(self, plan: _Plan, block: np.ndarray, rows: np.ndarray, values: np.ndarray, bad: np.ndarray,
-               stamps: np.ndarray, errors: list[str]) -> None:
+               stamps: np.ndarray, errors: list[tuple[int, str]]) -> None:
         """Read ``plan``'s fields from ``block`` (a row per message, contiguous) into ``rows``."""
         def column(offset: int, dtype: np.dtype) -> np.ndarray:
             return np.ndarray(len(rows), dtype, block, offset, (plan.length,))
         for j, at in enumerate(plan.offsets):
             if at is None:
                 bad[rows, j] = True
-                errors[j] = plan.errors[j]
+                errors[j] = max(errors[j], (rows[-1], plan.errors[j]))
             else:
                 values[rows, j] = column(*at)
         if self.stamped:
