@@ -24,6 +24,8 @@ NAME's index (``field_path`` semantics: MissingName when a message lacks it). A
 payload that is short or whose counts lie raises FieldError naming the field.
 ``extract_batch(extract, messages)`` reads the whole-array (or scalar) field of many messages
 without a header at once, when they share one layout (the node's ingest of a flush).
+``topic_decoder(cls, paths)`` reads one number per path (``data[2]``, ``position[elbow]``) from
+many messages at once, the layout walked once per distinct layout (a topic shared by channels).
 """
 
 from __future__ import annotations
