@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from hammer_ros.ros.cdr import extract_batch, raw_extractor
+from hammer_ros.ros.cdr import extract_batch, raw_extractor, topic_decoder
 from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 
@@ -261,3 +261,57 @@ def test_a_bag_extractor_reads_every_message_of_a_stream_as_if_it_were_the_first
     lying = lying[:-7] + struct.pack("<I", 10) + lying[-3:]  # the same bytes up to x, a string past the end
     with pytest.raises(FieldError, match="ends before it"):  # walked, not taken from the last message
         trailing(lying)
+
+
+def test_several_fields_of_a_topic_are_read_in_one_pass_as_one_by_one():
+    """``topic_decoder`` (a topic shared by channels): the names of every message are looked
+    up, so reordered names read the right joint, a missing one is bad in that message only, a
+    message that ends early is bad for every field; each value and stamp is the one-message
+    reader's (``raw_extractor``) and the ground truth's, one layout walked once."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+
+    joints = [f"joint_{k}" for k in range(6)]
+    texts = [f"{field}[{name}]" for name in joints for field in ("position", "velocity")]
+    paths = [parse_field_path(t) for t in texts]
+    decoder = topic_decoder(JointState, paths)
+    rng = np.random.default_rng(5)
+    messages, truth = [], []
+    for i in range(400):
+        names = list(joints)
+        if i % 50 == 3:
+            names = [names[j] for j in rng.permutation(6)]
+        if i == 200:
+            names.remove("joint_4")
+        msg = JointState(name=names, position=[int(n[-1]) + 0.001 * i for n in names],
+                         velocity=[-int(n[-1]) - 0.001 * i for n in names])
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_000 + i, 1000 * i
+        msg.header.frame_id = "base" if i != 300 else "a_longer_frame"
+        messages.append(serialize_message(msg))
+        truth.append([s * (k + 0.001 * i) for k in range(6) for s in (1, -1)])
+    messages.append(messages[0][:60])  # ends inside the names
+    decoded = decoder.decode(messages)
+    assert len(decoder._plans) <= 12  # the permutations, the missing joint, the long frame_id
+    for i, data in enumerate(messages):
+        for j, path in enumerate(paths):
+            try:
+                value, stamp = raw_extractor(JointState, path)(data)
+            except FieldError:
+                assert decoded.bad[i, j], (i, texts[j])
+                continue
+            assert not decoded.bad[i, j] and decoded.values[i, j] == value == truth[i][j], (i, texts[j])
+            assert decoded.stamps[i] == stamp == 1_700_000_000 + i + 1e-6 * i
+    assert decoded.bad[200].tolist() == [t.startswith(("position[joint_4]", "velocity[joint_4]")) for t in texts]
+    assert decoded.bad[-1].all() and np.count_nonzero(decoded.bad) == 2 + len(paths)
+    assert decoded.errors[8] == "field 'position[joint_4]': the message ends before its last field"  # the last
+    again = decoder.decode(messages[200:201])  # a kept plan: the same answers
+    assert again.errors[8].startswith("field 'position[joint_4]': no 'joint_4' in this message's name")
+    assert again.errors[0] == "" and not again.bad[0, 0] and again.values[0, 0] == 0.2
+    commands = topic_decoder(Float64MultiArray, [parse_field_path("data[0]"), parse_field_path("data[-1]")])
+    block = commands.decode([serialize_message(Float64MultiArray(data=[1.0 * i, 0.0, 3.0 * i])) for i in range(5)])
+    assert block.values.tolist() == [[i, 3.0 * i] for i in range(5)] and not block.bad.any()
+    for text in ("position", "position[:]", "name[0]", "header.stamp", "speed"):  # not one number each
+        assert topic_decoder(JointState, [paths[0], parse_field_path(text)]) is None, text
+    noise = [rng.integers(0, 256, 40).astype(np.uint8).tobytes() for _ in range(50)]
+    assert topic_decoder(JointState, paths).decode(noise).values.shape == (50, 12)  # bad or numbers

@@ -24,6 +24,8 @@ NAME's index (``field_path`` semantics: MissingName when a message lacks it). A
 payload that is short or whose counts lie raises FieldError naming the field.
 ``extract_batch(extract, messages)`` reads the whole-array (or scalar) field of many messages
 without a header at once, when they share one layout (the node's ingest of a flush).
+``topic_decoder(cls, paths)`` reads one number per path (``data[2]``, ``position[elbow]``) from
+many messages at once, the layout walked once per distinct layout (a topic shared by channels).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import importlib
 import re
 import struct
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -405,3 +408,223 @@ def extract_batch(extract: Extract, messages: list[bytes]) -> np.ndarray | None:
     order = ">" if first[1] == 0 else "<"
     values = block[:, start : start + width].copy().view(extract.dtype.newbyteorder(order))
     return values if values.dtype == np.float64 and order == "<" else values.astype(np.float64)
+
+
+# ---------------------------------------------------------------- one pass for several fields
+# A topic read by several channels (``channels.SharedTopic``) is decoded once per flush: the
+# message's layout is walked once per distinct layout (``_walk``), and every field of a flush's
+# messages is then read at its offset from one byte block with numpy.
+
+
+@dataclass(frozen=True)
+class Decoded:
+    """The fields of m messages (``TopicDecoder.decode``): ``values[i, j]`` field j of message i
+    (valid where ``bad[i, j]`` is False), ``stamps[i]`` its header stamp in seconds (0.0 for
+    none), ``errors[j]`` why field j was bad in the last message where it was ('' if never)."""
+
+    values: np.ndarray
+    bad: np.ndarray
+    stamps: np.ndarray
+    errors: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Where the fields are in messages of one layout: those of ``length`` bytes equal to
+    ``reference`` at ``columns`` (every byte but the numbers', so the same counts, strings and
+    padding: the walk of the layout goes the same way); ``offsets[j]`` the byte offset of field
+    j (None: bad in this layout, ``errors[j]`` why)."""
+
+    length: int
+    columns: np.ndarray
+    reference: np.ndarray
+    offsets: tuple[int | None, ...]
+    errors: tuple[str, ...]
+
+
+def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: int, prefix: str,
+          entries: dict[str, tuple], numbers: list[tuple[int, int]]) -> int:
+    """Walk the fields at ``pos``: ``entries`` gets each number field ('scalar', offset, dtype),
+    each number array ('array', offset, count, dtype) and each string array ('strings', the
+    strings) by dotted name, outside sequences of messages; ``numbers`` the byte ranges of all
+    numbers (the bytes that never change a layout). Returns the position after the fields."""
+    for name, type_name in fields.items():
+        kind, what, count = _kind(type_name, nested)
+        key = prefix + name
+        if kind == "primitive":
+            code, size = what
+            n = 1 if count is None else count
+            if n < 0:
+                n, pos = _u32(data, pos, order)
+            start = _align(pos, size) if n else pos
+            numbers.append((HEADER + start, HEADER + start + n * size))
+            dtype = np.dtype(code).newbyteorder(order)
+            entries[key] = ("scalar", HEADER + start, dtype) if count is None else ("array", HEADER + start, n, dtype)
+            pos = start + n * size
+        elif kind == "string":
+            if count is None:
+                pos = _skip_string(data, pos, order)
+                continue
+            found = _strings(data, pos, order, count)
+            entries[key] = ("strings", found)
+            pos = _skipper(type_name, nested)(data, pos, order)
+        elif count is None:
+            pos = _walk(what, nested, data, order, pos, key + ".", entries, numbers)
+        else:  # a sequence of messages: walked for its numbers, its fields not addressable
+            n = count
+            if n < 0:
+                n, pos = _u32(data, pos, order)
+                if n > len(data) - HEADER - pos:
+                    raise struct.error("a sequence count beyond the end of the message")
+            for _ in range(n):
+                pos = _walk(what, nested, data, order, pos, key + "[].", {}, numbers)
+    return pos
+
+
+class TopicDecoder:
+    """Fields ``paths`` (one number each: ``x``, ``data[3]``, ``position[elbow]``) of the
+    serialized messages of one type, read in one pass (``decode``). A layout is walked once:
+    its plan (the offsets, ``_Plan``) is kept for the messages that share it, the most recent
+    first, at most MAX_PLANS (JointState's names rarely change: one plan)."""
+
+    MAX_PLANS = 32
+
+    def __init__(self, fields: dict[str, str], paths: list[FieldPath], nested: Fields) -> None:
+        self.fields, self.paths, self.nested = fields, paths, nested
+        self.stamped = "header" in fields
+        if self.stamped and (next(iter(fields)) != "header" or fields["header"] != "std_msgs/Header"):
+            raise UnsupportedLayout("a header elsewhere")
+        for path in paths:
+            self._target_kind(path)
+        self._plans: list[_Plan] = []
+
+    def _target_kind(self, path: FieldPath) -> str:
+        """'scalar', 'index' or 'name' for a path to one number; UnsupportedLayout otherwise."""
+        fields = self.fields
+        for step in path.steps[:-1]:
+            if step.name not in fields or step.indices:
+                raise UnsupportedLayout(path.text)
+            kind, fields, count = _kind(fields[step.name], self.nested)
+            if kind != "message" or count is not None:
+                raise UnsupportedLayout(path.text)
+        last = path.steps[-1]
+        if last.name not in fields:
+            raise UnsupportedLayout(path.text)
+        kind, what, count = _kind(fields[last.name], self.nested)
+        if kind != "primitive" or what[0] == "?" or len(last.indices) != (0 if count is None else 1):
+            raise UnsupportedLayout(path.text)
+        if last.element_name is None:
+            if last.indices and last.indices[0] is None:  # ``[:]``: every element, not one number
+                raise UnsupportedLayout(path.text)
+            return "index" if last.indices else "scalar"
+        kind, _, count = _kind(fields.get(NAME_FIELD, "double"), self.nested)
+        if kind != "string" or count is None:  # field[NAME] needs a sibling array of names
+            raise UnsupportedLayout(path.text)
+        return "name"
+
+    def _plan(self, data: bytes) -> _Plan:
+        """The plan of ``data``'s layout (FieldError when the message ends early)."""
+        if len(data) < HEADER:
+            raise FieldError(f"a {len(data)}-byte message")
+        order = ">" if data[1] == 0 else "<"
+        entries: dict[str, tuple] = {}
+        numbers: list[tuple[int, int]] = []
+        try:
+            end = _walk(self.fields, self.nested, data, order, 0, "", entries, numbers)
+        except struct.error:
+            end = len(data)  # a count beyond the end
+        if HEADER + end > len(data):
+            raise FieldError("the message ends before its last field")
+        offsets, errors = [], []
+        for path in self.paths:
+            try:
+                offsets.append(self._offset(path, entries))
+                errors.append("")
+            except FieldError as exc:
+                offsets.append(None)
+                errors.append(str(exc))
+        mask = np.ones(len(data), bool)
+        for start, stop in numbers:
+            mask[start:stop] = False
+        columns = np.flatnonzero(mask)
+        return _Plan(len(data), columns, np.frombuffer(data, np.uint8)[columns].copy(), tuple(offsets), tuple(errors))
+
+    def _offset(self, path: FieldPath, entries: dict[str, tuple]) -> tuple[int, np.dtype]:
+        """(byte offset, dtype) of ``path``'s number in a walked layout; FieldError as the
+        one-message reader (``raw_extractor``) says it."""
+        parents = [step.name for step in path.steps[:-1]]
+        entry = entries[".".join([*parents, path.steps[-1].name])]
+        if entry[0] == "scalar":
+            return entry[1], entry[2]
+        _, start, n, dtype = entry
+        last = path.steps[-1]
+        if last.element_name is None:
+            index = last.indices[0]
+            if not -n <= index < n:
+                raise FieldError(f"field {path.text!r}: index {index} out of range, {n} elements")
+            return start + (index % n) * dtype.itemsize, dtype
+        names = entries[".".join([*parents, NAME_FIELD])][1]
+        element = last.element_name.encode()
+        if element not in names:
+            named_index([s.decode(errors="replace") for s in names], last.element_name, path)
+        index = names.index(element)
+        if index >= n:
+            raise FieldError(f"field {path.text!r}: {last.element_name!r} is name {index}, "
+                             f"{last.name!r} has {n} elements")
+        return start + index * dtype.itemsize, dtype
+
+    def decode(self, messages: list[bytes]) -> Decoded:
+        """Every field of ``messages`` (``Decoded``): the messages grouped by length into byte
+        blocks, each block's rows matched to the kept plans at once, a new layout walked once."""
+        m, k = len(messages), len(self.paths)
+        values, bad, stamps = np.zeros((m, k)), np.zeros((m, k), bool), np.zeros(m)
+        errors = [(-1, "")] * k  # (the last bad message, why) per field
+        lengths = np.fromiter(map(len, messages), np.intp, m)
+        for length in np.unique(lengths):
+            rows = np.flatnonzero(lengths == length)
+            block = np.frombuffer(b"".join([messages[i] for i in rows]), np.uint8).reshape(rows.size, length)
+            left = np.arange(rows.size)
+            while left.size:
+                for plan in [p for p in self._plans if p.length == length]:
+                    hit = (block[np.ix_(left, plan.columns)] == plan.reference).all(axis=1)
+                    if hit.any():
+                        self._apply(plan, block[left[hit]], rows[left[hit]], values, bad, stamps, errors)
+                        left = left[~hit]
+                        if not left.size:
+                            break
+                if not left.size:
+                    break
+                first = messages[rows[left[0]]]
+                try:
+                    self._plans.insert(0, self._plan(first))
+                    del self._plans[self.MAX_PLANS:]
+                except FieldError as exc:  # a message that cannot be walked: bad for every field
+                    row = rows[left[0]]
+                    bad[row] = True
+                    errors[:] = [max(e, (row, f"field {p.text!r}: {exc}")) for e, p in zip(errors, self.paths)]
+                    left = left[1:]
+        return Decoded(values, bad, stamps, tuple(why for _, why in errors))
+
+    def _apply(self, plan: _Plan, block: np.ndarray, rows: np.ndarray, values: np.ndarray, bad: np.ndarray,
+               stamps: np.ndarray, errors: list[tuple[int, str]]) -> None:
+        """Read ``plan``'s fields from ``block`` (a row per message, contiguous) into ``rows``."""
+        def column(offset: int, dtype: np.dtype) -> np.ndarray:
+            return np.ndarray(len(rows), dtype, block, offset, (plan.length,))
+        for j, at in enumerate(plan.offsets):
+            if at is None:
+                bad[rows, j] = True
+                errors[j] = max(errors[j], (rows[-1], plan.errors[j]))
+            else:
+                values[rows, j] = column(*at)
+        if self.stamped:
+            order = ">" if block[0, 1] == 0 else "<"
+            stamps[rows] = column(HEADER, np.dtype(order + "i4")) + 1e-9 * column(HEADER + 4, np.dtype(order + "u4"))
+
+
+def topic_decoder(cls, paths: list[FieldPath]) -> TopicDecoder | None:
+    """A ``TopicDecoder`` of ``paths`` in serialized messages of ``cls``, or None when one of
+    them is not one number readable this way (the caller reads each message as before)."""
+    try:
+        return TopicDecoder(cls.get_fields_and_field_types(), paths, installed_fields)
+    except (UnsupportedLayout, ImportError, AttributeError):
+        return None

@@ -3,9 +3,14 @@
 response) pair per channel, each with its own ``StreamingEngine``, solve and diagnosis threads
 and outputs under ``~/NAME/`` (model, poles, zeros, markov, nonlinearity, diagnosis).
 
-A topic read by several channels is subscribed once: its callback queues the one message (raw
-CDR when every channel reading it has a raw extractor, else the message rclpy built once) for
-every channel reading it, and each channel's ingest thread takes its own field out. /diagnostics
+A topic read by several channels is subscribed once and decoded once per message: its callback
+queues the serialized message once (``SharedTopic``), and the first channel's ingest thread to
+flush reads every channel's number (``position[joint_3]``, ``data[2]``) out of all the queued
+messages in one numpy pass (``cdr.TopicDecoder``: the layout, names included, walked once per
+distinct layout) and hands each channel its column. A topic where some channel reads what the
+decoder does not (a whole array, a field rclpy must build) queues the message (raw CDR when every
+channel has a raw extractor, else the message rclpy built once) for every channel, and each
+channel's ingest thread takes its own field out. /diagnostics
 carries one array with one status per channel (``NODE/NAME: identification``, the newest of
 each); ``~/reset``, ``~/solve`` and ``~/diagnose`` act on every channel. The parameters of a
 node with several channels are fixed at startup; it has no Foxglove server and no output_mcap.
@@ -18,6 +23,8 @@ import threading
 from dataclasses import fields
 from typing import Any
 
+import numpy as np
+
 from .environment import prepare_ros_environment
 
 prepare_ros_environment()
@@ -27,7 +34,17 @@ from rclpy.lifecycle import LifecycleNode  # noqa: E402
 from ..errors import UsageError  # noqa: E402
 from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
 from ..streaming.config import EngineConfig  # noqa: E402
-from .node_core import PARAMETERS, IdentificationCore, _Input, _normal_type, built_reader, message_class  # noqa: E402
+from .cdr import TopicDecoder, topic_decoder  # noqa: E402
+from .node_core import (  # noqa: E402
+    PARAMETERS,
+    IdentificationCore,
+    _drained,
+    _Input,
+    _normal_type,
+    _queueing_callback,
+    built_reader,
+    message_class,
+)
 from .outputs import message_class as output_message_class  # noqa: E402
 
 REPLAY_KEYS = {f.name for f in fields(EngineConfig)} | set(TOPIC_KEYS) | set(OTHER_KEYS)
@@ -154,6 +171,31 @@ def _fanout_callback(sources: list[_Input]):
     return on_message
 
 
+class SharedTopic:
+    """A topic whose every reader takes one number per message (``cdr.TopicDecoder``): the
+    subscription's callback queues each serialized message once (``_queueing_callback``), and
+    ``distribute`` decodes what is queued for all of them at once, each input getting its
+    chunk (receive times, values, bad, header stamps, why bad) for ``IdentificationCore._decoded``."""
+
+    def __init__(self, topic: str, sources: list[_Input], decoder: TopicDecoder) -> None:
+        self.input = _Input(topic)
+        self.input.pending_limit = min(s.pending_limit for s in sources)  # one sample a message
+        self.sources, self.decoder = sources, decoder
+        self._lock = threading.Lock()  # one decode at a time: the chunks keep the messages' order
+
+    def distribute(self) -> None:
+        with self._lock:
+            items = _drained(self.input.pending)
+            if not items:
+                return
+            receives, messages, _ = zip(*items)
+            decoded = self.decoder.decode(list(messages))
+            times = np.array(receives)
+            for j, source in enumerate(self.sources):
+                source.pending.append((times, decoded.values[:, j], decoded.bad[:, j], decoded.stamps,
+                                       decoded.errors[j]))
+
+
 class ChannelSet:
     """The channels of a node (``IdentificationCore.configure`` with several ``channels``): one
     ``ChannelCore`` each, configured at once (a bad channel is a UsageError naming it)."""
@@ -188,16 +230,22 @@ class ChannelSet:
                 readers.setdefault(key, []).append((core, stream))
         for (topic, type_name), users in readers.items():
             sources = [core.inputs[stream] for core, stream in users]
-            raw = all(s.raw is not None for s in sources)
+            cls = message_class(type_name)
+            decoder = topic_decoder(cls, [s.path for s in sources])
+            raw = decoder is not None or all(s.raw is not None for s in sources)
+            if decoder is not None:
+                feed = SharedTopic(topic, sources, decoder)
+                shared, callback = feed.input, _queueing_callback(feed.input)
+            else:
+                feed, shared, callback = None, _Input(topic), _fanout_callback(sources)
+            core, stream = users[0]
+            qos = core._prepare_input(stream)[2]  # (before: it sets the first input's read)
             if not raw:  # rclpy builds the message once; every channel reads its field from it
                 for source in sources:
                     source.read = built_reader(source.path)
-            shared = _Input(topic)
-            core, stream = users[0]
-            qos = core._prepare_input(stream)[2]
-            shared.subscribe(self.host, message_class(type_name), topic, _fanout_callback(sources), qos, raw=raw)
+            shared.subscribe(self.host, cls, topic, callback, qos, raw=raw)
             for source in sources:
-                source.shared = shared
+                source.shared, source.feed = shared, feed
             self.topics.append(shared)
         self.host.active = True
 

@@ -274,6 +274,7 @@ class _Input:
         self._lost_before = 0  # messages lost by the subscriptions before this one
         self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
         self.shared: _Input | None = None  # the subscription of a topic read by several channels (``channels``)
+        self.feed = None  # channels.SharedTopic: its decoded chunks come into ``pending`` (``_decoded``)
 
     def subscribe(self, node, cls, topic: str, callback: Callable, qos: QoSProfile, raw: bool) -> None:
         """(Re)subscribe. The middleware's message-lost status is read when asked (``dds_lost``),
@@ -312,6 +313,10 @@ class _Input:
                 return self._lost_before + status.take_event().total_count
         except InvalidHandle:  # destroyed meanwhile (deactivate)
             return self._lost_before
+
+    def dropped(self) -> int:
+        """Messages dropped because a queue to the engine was full (its own, the shared topic's)."""
+        return self.queue_dropped + (self.shared.queue_dropped if self.shared is not None else 0)
 
     def publishers(self) -> int:
         """Publishers matched with the subscription (0 when unsubscribed): the middleware delivers
@@ -582,17 +587,29 @@ class IdentificationCore:
         return (*STREAMS, REFERENCE) if self.values["reference_topic"] else STREAMS
 
     def _bad_message(self, stream: str, exc: Exception) -> None:
+        self._bad_messages(stream, 1, str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}")
+
+    def _bad_messages(self, stream: str, count: int, why: str) -> None:
+        """``count`` messages of ``stream`` skipped, the last for ``why``: counted, warned (throttled)."""
         source = self.inputs[stream]
-        source.field_errors += 1
-        source.last_error = str(exc) if isinstance(exc, FieldError) else f"{type(exc).__name__}: {exc}"
-        self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {exc}", throttle_duration_sec=5.0)
+        source.field_errors += count
+        source.last_error = why
+        self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: {why}", throttle_duration_sec=5.0)
+
+    def _distribute(self) -> None:
+        """Decode the shared topics' queued messages for every channel reading them (``channels``)."""
+        for source in self.inputs.values():
+            if source.feed is not None:
+                source.feed.distribute()
 
     def _flush(self) -> None:
         """Move the queued samples into the engine: one vectorised add of both streams,
         interleaved in time (``StreamingEngine.add_streams``)."""
         with self._lock:
+            self._distribute()
             pending = {stream: _drained(source.pending) for stream, source in self.inputs.items()}
-            batches = {stream: self._stamped(stream, items) for stream, items in pending.items() if items}
+            batches = {stream: (self._decoded if self.inputs[stream].feed else self._stamped)(stream, items)
+                       for stream, items in pending.items() if items}
             reference = batches.pop(REFERENCE, None)
             if reference is not None:
                 self.engine.add_reference(*reference)
@@ -656,6 +673,23 @@ class IdentificationCore:
         for start, t in explicit:
             stamps[start:start + t.size] = t
         return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
+
+    def _decoded(self, stream: str, chunks: list[tuple]) -> tuple | None:
+        """``_stamped`` for the chunks of a shared topic (``SharedTopic.distribute``: receive
+        times, values, bad, header stamps, why bad), one number per message: a bad one counted
+        and skipped, a message with a stamp at its stamp, the others stamped by the stamper."""
+        receives, values, bad, stamps = (np.concatenate(column) for column in list(zip(*chunks))[:4])
+        if bad.any():
+            self._bad_messages(stream, int(np.count_nonzero(bad)), next(c[4] for c in reversed(chunks) if c[2].any()))
+            good = ~bad
+            receives, values, stamps = receives[good], values[good], stamps[good]
+        self.inputs[stream].message_samples = 1
+        unstamped = stamps == 0.0
+        if unstamped.any():
+            stamps[unstamped] = self.stamper.first_stamps(stream, receives[unstamped], 1)
+        placed = np.isfinite(stamps)
+        self.unplaced += placed.size - int(np.count_nonzero(placed))
+        return (stamps[placed], values[placed]) if placed.any() else None
 
     def _counted(self, stream: str, receives: tuple[float, ...], block: np.ndarray) -> tuple | None:
         """``_stamped`` for messages of one layout without a header stamp (``extract_batch``'s
@@ -925,8 +959,8 @@ class IdentificationCore:
             "unplaced_samples": self.unplaced,
             "clock_restarts": self.stamper.restarts,
             "skipped_solves": self.skipped_solves,
-            "excitation_queue_dropped": self.inputs["excitation"].queue_dropped,
-            "response_queue_dropped": self.inputs["response"].queue_dropped,
+            "excitation_queue_dropped": self.inputs["excitation"].dropped(),
+            "response_queue_dropped": self.inputs["response"].dropped(),
             "excitation_dds_lost": self.inputs["excitation"].dds_lost(),
             "response_dds_lost": self.inputs["response"].dds_lost(),
             "excitation_publishers": self.inputs["excitation"].publishers(),
@@ -982,6 +1016,7 @@ class IdentificationCore:
         if self._refusal():
             return False, self._refusal()
         with self._solve_lock, self._lock:
+            self._distribute()
             for source in self.inputs.values():
                 source.pending.clear()
             dropped = self.engine.snapshot().v.size
