@@ -141,6 +141,31 @@ def test_a_channels_row_equals_replay_of_the_channels(arm_fleet):
         assert {k: row[k] for k in expected} == expected
 
 
+def test_resume_keeps_the_finished_bags_channels_and_replays_the_rest(arm_fleet, tmp_path):
+    """A fleet.parquet holding both channels of the first 3 bags: --resume replays the other 5
+    bags (both channels each) and keeps the 6 rows as they were."""
+    from hammer_ros.fleet.table import write_parquet
+
+    bags, config, out, _ = arm_fleet
+    rows, settings = read_rows(out / "fleet.parquet")
+    kept = sorted(bags)[:3]
+    resumed = tmp_path / "resumed"
+    resumed.mkdir()
+    write_parquet([r for r in rows if r["path"] in kept], resumed / "fleet.parquet", settings, 100.0)
+    code, stdout = run_json(["fleet", *bags, "--config", str(config), "--workers", "1", "--out", str(resumed),
+                             "--resume"])
+    assert code == 0 and "8 bags x 2 channels (joint1, joint2), 16 with a model, 0 failed (3 from the previous run)" \
+        in stdout, stdout
+    again, _ = read_rows(resumed / "fleet.parquet")
+    assert sorted((r["path"], r["channel"]) for r in again) == sorted((r["path"], r["channel"]) for r in rows)
+    before = {(r["path"], r["channel"]): r for r in rows}
+    for row in again:
+        if row["path"] in kept:
+            assert row == before[(row["path"], row["channel"])]  # not replayed: the same row
+        else:
+            assert row["model"]["poles"] == before[(row["path"], row["channel"])]["model"]["poles"]
+
+
 @pytest.mark.parametrize(("change", "reason"), [
     ("channels: [joint1, joint2, joint1]", "channels: duplicate channel 'joint1'"),
     ("channels: [joint1]", "joint2: parameters of a channel 'joint2' that is not in channels (joint1)"),

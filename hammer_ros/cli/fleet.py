@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
               f"missing (run the same command with --resume to finish them)", file=sys.stderr)
         return 128 + (stop.signal or signal.SIGINT)
     return report(run.rows, sources, config.sample_rate, out_dir, args.json, run.wall_s, run.workers,
-                  resumed=len(done_rows))
+                  resumed=len({r["path"] for r in done_rows}))
 
 
 def report(rows: list[dict], sources, sample_rate: float, out_dir: Path, as_json: bool, wall_s: float,

@@ -1206,30 +1206,33 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS, rounds: int = FLEET_R
     config = EngineConfig(sample_rate=100.0, window=1000, tau_max=default_tau_max(2, DEFAULT_MU), order=2, delay=1)
     settings = FleetSettings(*stream_specs(None, None, params, str(config_path)), config, 0.5)
     joints = sample_joints(robots=4, joints=2)
-    serial, plain, runs, loads, failed = [], [], [], [], 0
+    serial, plain, runs, startups, loads, failed = [], [], [], [], [], 0
     with tempfile.TemporaryDirectory(prefix="hammer_ros_bench_fleet_") as tmp:
         write_sample_fleet(tmp, joints, math.ceil(bags / len(joints)), samples=1000)
         sources = sources_from_paths([tmp])[:bags]
         run_bag(settings, sources[0])  # this process's first bag pays lazy imports, as a worker's warm-up does
-        startup, (client, cluster) = _timed(lambda: connect(None, workers))
-        try:
-            run_fleet(client, sources[:workers * 2], settings)  # warm the workers' imports
 
-            def measure_serial() -> None:
-                seconds, rows = _timed(lambda: [run_bag(settings, s) for s in sources])
-                serial.append(seconds)
-                nonlocal failed
-                failed += sum(1 for r in rows if r.get("error"))
+        def measure_serial() -> None:
+            seconds, rows = _timed(lambda: [run_bag(settings, s) for s in sources])
+            serial.append(seconds)
+            nonlocal failed
+            failed += sum(1 for r in rows if r.get("error"))
 
-            steps = [measure_serial, lambda: runs.append(run_fleet(client, sources, settings)),
-                     lambda: plain.append(plain_processes_wall(settings, sources, workers))]
-            for i in range(rounds):
-                loads.append(os.getloadavg()[0])
-                for step in steps[i % 3:] + steps[:i % 3]:
-                    step()
-        finally:
-            client.close()
-            cluster.close()
+        def measure_fleet() -> None:  # a cluster of its own: none idles beside the serial and plain runs
+            startup, (client, cluster) = _timed(lambda: connect(None, workers))
+            startups.append(startup)
+            try:
+                run_fleet(client, sources[:workers * 2], settings)  # warm the workers' imports
+                runs.append(run_fleet(client, sources, settings))
+            finally:
+                client.close()
+                cluster.close()
+
+        steps = [measure_serial, measure_fleet, lambda: plain.append(plain_processes_wall(settings, sources, workers))]
+        for i in range(rounds):
+            loads.append(os.getloadavg()[0])
+            for step in steps[i % 3:] + steps[:i % 3]:
+                step()
     failed += sum(1 for run in runs for r in run.rows if r.get("error"))
     ratios = [s / run.wall_s for s, run in zip(serial, runs, strict=True)]
     ratio = _median(ratios)
@@ -1239,7 +1242,7 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS, rounds: int = FLEET_R
                          "ratios": " ".join(f"{r:.2f}" for r in ratios),
                          "plain": _median([s / p for s, p in zip(serial, plain, strict=True)]),
                          "task": _median([r["seconds"] for run in runs for r in run.rows]),
-                         "overhead": _median(overheads), "startup": startup,
+                         "overhead": _median(overheads), "startup": _median(startups),
                          "load": " ".join(f"{x:.1f}" for x in loads), "goal": ratio >= 1.7 and failed == 0})
     section.notes.append(f"serial: the fleet's task (replay's loop) on each bag in turn in this process (after one "
                          "bag apart); fleet: "
@@ -1249,8 +1252,9 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS, rounds: int = FLEET_R
                          "seconds) / bags: scheduling, transfer and idle time per bag; plain processes: "
                          f"{workers} processes (no Dask) replaying interleaved shares of the bags at once, "
                          "the machine's own ceiling for bags side by side (serial / their wall); "
-                         f"{rounds} rounds of the three back to back (order rotated each round), the speed-ups "
-                         "per round and their median (the figures shown are medians)")
+                         f"{rounds} rounds of the three back to back (order rotated each round; each fleet on a "
+                         "new cluster, closed before the next step), the speed-ups per round and their median "
+                         "(the figures shown are medians)")
     return section
 
 
