@@ -121,7 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     # None = take it from --config (then the engine default): the identify options' defaults
     p.set_defaults(func=_delegate("hammer_ros.cli.replay"), method=None, order=None, delay=None, poly=None)
 
-    p = sub.add_parser("fleet", help="replay many bags on Dask distributed; what changed per group")
+    p = sub.add_parser("fleet", help="replay many bags (each channel of a --config with several) on Dask "
+                       "distributed; what changed per group (and channel)")
     p.add_argument("bags", nargs="*", metavar="BAGS", help=".mcap files, rosbag2 directories, directories to search")
     p.add_argument("--manifest", default=None, metavar="FILE", help="CSV: a path column and label columns")
     add_data_options(p, reference=True)

@@ -28,14 +28,14 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.table import read_rows, write_parquet
     from ..identification.methods import REFERENCE_METHODS
     from ..io.bags import (
+        config_channels,
         engine_config_from_params,
         forget_warnings,
         load_msg_config,
-        single_channel_params,
         stream_spec,
         stream_specs,
     )
-    from .replay import SignalStop, replay_settings
+    from .replay import SignalStop, channel_runs, replay_settings
 
     forget_warnings()
     if args.scheduler and args.workers is not None:
@@ -48,15 +48,33 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("BAGS and --manifest: give one")
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
-    params = single_channel_params(params, source, "fleet replays one channel per bag (not several yet)")
-    excitation, response = stream_specs(args.input, args.output, params, source)
-    reference = stream_spec("--reference", "reference", args.reference, params, source, required=False)
-    engine_config_from_params(params, source)
-    config, solve_rate = replay_settings(args, params, source)
-    if reference is not None and config.method not in REFERENCE_METHODS:
-        raise UsageError(f"--reference: not for {config.method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
+    channels = config_channels(params, source)
+    runs = channel_runs(args, channels, source) if len(channels) > 1 else []
+    if runs:
+        if args.diagnose:
+            raise UsageError(f"--diagnose: not with several channels ({source} has {len(channels)}) yet; run the "
+                             "fleet on one channel's config for it")
+        rates = {run.config.sample_rate for run in runs}
+        if len(rates) > 1:
+            raise UsageError(f"{source}: channels: fleet needs one sample_rate for all channels (got "
+                             f"{', '.join(f'{run.name} {run.config.sample_rate:g}' for run in runs)})")
+        excitation, response, config, solve_rate = runs[0].excitation, runs[0].response, runs[0].config, \
+            runs[0].solve_rate
+        reference = None
+    else:
+        if channels:  # one channel: exactly the fleet of its parameters
+            params = channels[0].params
+        excitation, response = stream_specs(args.input, args.output, params, source)
+        reference = stream_spec("--reference", "reference", args.reference, params, source, required=False)
+        engine_config_from_params(params, source)
+        config, solve_rate = replay_settings(args, params, source)
+        if reference is not None and config.method not in REFERENCE_METHODS:
+            raise UsageError(f"--reference: not for {config.method} (instrumented methods: "
+                             f"{', '.join(REFERENCE_METHODS)})")
     sources = _sources(args)
-    _check_first_bag(sources, excitation, response, reference)
+    for run in runs or [None]:
+        _check_first_bag(sources, run.excitation if run else excitation, run.response if run else response,
+                         reference)
     out_dir = Path(args.out or ".")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -67,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.tasks import FleetSettings
 
     settings = FleetSettings(excitation, response, config, solve_rate, str(params.get("frame_id", "")),
-                             args.diagnose, str((out_dir / MCAP_DIR).resolve()) if args.out else None, reference)
+                             args.diagnose, str((out_dir / MCAP_DIR).resolve()) if args.out else None, reference,
+                             tuple(runs))
     parquet = out_dir / PARQUET
     done_rows: list[dict] = []
     if args.resume and parquet.exists():
@@ -89,16 +108,18 @@ def run(args: argparse.Namespace) -> int:
     finally:
         _close(client, cluster)
     if run.interrupted:
-        print(f"hammer-ros: fleet interrupted: {len(run.rows)} of {len(sources)} bags in {parquet}, {run.missing} "
+        print(f"hammer-ros: fleet interrupted: {run.bags} of {len(sources)} bags in {parquet}, {run.missing} "
               f"missing (run the same command with --resume to finish them)", file=sys.stderr)
         return 128 + (stop.signal or signal.SIGINT)
     return report(run.rows, sources, config.sample_rate, out_dir, args.json, run.wall_s, run.workers,
-                  resumed=len(done_rows))
+                  resumed=len({r["path"] for r in done_rows}))
 
 
 def report(rows: list[dict], sources, sample_rate: float, out_dir: Path, as_json: bool, wall_s: float,
            workers: int, resumed: int = 0) -> int:
-    """The change test on the rows, fleet.html, and the summary (table or JSON) on stdout."""
+    """The change test on the rows (per group, and channel), fleet.html, and the summary (table or
+    JSON) on stdout. With several channels: ``bags`` counts the bags, ``ok`` and ``failed`` the
+    (bag, channel) rows, ``channels`` names them and each row and change has its ``channel``."""
     from ..fleet.changes import group_changes, relative_noise
     from ..fleet.report import change_line, write_report
     from ..fleet.table import bag_date, group_series, model_quantities
@@ -109,13 +130,16 @@ def report(rows: list[dict], sources, sample_rate: float, out_dir: Path, as_json
     noise = {q: relative_noise([s.values[q] for s in series]) for q in (series[0].values if series else {})}
     tests, changes = {}, []
     for s in series:
-        tests[s.group], found = group_changes(s.group, s.times, s.values, noise, s.sds)
+        tests[s.key], found = group_changes(s.key, s.times, s.values, noise, s.sds)
         changes += found
-    by_group = {s.group: s for s in series}
+    by_group = {s.key: s for s in series}
     write_report(out_dir / HTML, series, tests, changes, rows, sample_rate)
     failed = [r for r in rows if r.get("error")]
+    bags = len({r["path"] for r in rows})
+    channels = list(dict.fromkeys(r["channel"] for r in rows if "channel" in r))
     if as_json:
-        doc = {"bags": len(rows), "ok": len(rows) - len(failed), "failed": len(failed),
+        doc = {"bags": bags, "ok": len(rows) - len(failed), "failed": len(failed),
+               **({"channels": channels} if channels else {}),
                "rows": [_json_row(r, model_quantities(r["model"], sample_rate) if r.get("model") else None)
                         for r in rows],
                "changes": [_json_change(c, by_group[c.group], bag_date) for c in changes],
@@ -124,7 +148,8 @@ def report(rows: list[dict], sources, sample_rate: float, out_dir: Path, as_json
         json.dump(_finite(doc), sys.stdout, allow_nan=False)
         sys.stdout.write("\n")
         return 0
-    print(f"fleet    {len(rows)} bags, {len(rows) - len(failed)} with a model, {len(failed)} failed"
+    what = f"{bags} bags x {len(channels)} channels ({', '.join(channels)})" if channels else f"{bags} bags"
+    print(f"fleet    {what}, {len(rows) - len(failed)} with a model, {len(failed)} failed"
           + (f" ({resumed} from the previous run)" if resumed else "")
           + f"; {wall_s:.1f} s on {workers} worker(s)")
     for r in failed:
@@ -177,6 +202,8 @@ def _close(client, cluster) -> None:
 def _json_row(row: dict, quantities: dict | None) -> dict:
     doc = {"path": row["path"], "group": row["group"], "labels": row["labels"], "start": row.get("start"),
            "end": row.get("end")}
+    if "channel" in row:
+        doc["channel"] = row["channel"]
     if row.get("error"):
         doc["error"] = row["error"]
         return doc
@@ -192,7 +219,8 @@ def _json_row(row: dict, quantities: dict | None) -> dict:
 def _json_change(change, series, bag_date) -> dict:
     first = series.rows[change.first_index]
     flagged = series.rows[change.first_index:]
-    return {"group": change.group, "quantity": change.quantity, "first_bag": first["path"],
+    return {"group": series.group, **({"channel": series.channel} if series.channel is not None else {}),
+            "quantity": change.quantity, "first_bag": first["path"],
             "first_date": bag_date(first), "size": change.size, "size_percent": round(100 * change.size, 2),
             "bags": change.bags, "reference": change.reference, "latest": change.latest,
             "trend_per_day": change.trend_per_day, "flagged": [r["path"] for r in flagged]}

@@ -229,13 +229,24 @@ def run(args: argparse.Namespace) -> int:
     return 0 if stop.signal is None else 128 + stop.signal
 
 
+def channel_runs(args: argparse.Namespace, channels: list[Channel], source: str) -> list[ChannelReplay]:
+    """Each channel's streams and settings (``replay_settings`` of its parameters: the command-line
+    identify options apply to every channel); --input/--output/--reference are a UsageError (the
+    channels' topics come from the config)."""
+    for option in ("input", "output", "reference"):
+        if getattr(args, option):
+            raise UsageError(f"--{option}: {source} has {len(channels)} channels; their topics come from it")
+    runs = []
+    for channel in channels:
+        config, solve_rate = replay_settings(args, channel.params, f"{source}: channel {channel.name!r}")
+        runs.append(ChannelReplay(channel.name, channel.excitation, channel.response, config, solve_rate))
+    return runs
+
+
 def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict, source: str) -> int:
     """``replay`` of a config with several channels (``replay_channels``): the command-line
     identify options apply to every channel; JSON ``{"channels": {NAME: <replay JSON>},
     "samples", "solves", "wall_s"}`` (samples and solves summed over the channels)."""
-    for option in ("input", "output", "reference"):
-        if getattr(args, option):
-            raise UsageError(f"--{option}: {source} has {len(channels)} channels; their topics come from it")
     if args.rate is not None:
         raise UsageError(f"--rate: not with several channels ({source} has {len(channels)}); replay runs them "
                          "as fast as possible")
@@ -243,11 +254,9 @@ def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict
         if given:
             raise UsageError(f"{option}: not with several channels ({source} has {len(channels)}) yet; replay one "
                              "channel's config for it")
-    runs = []
-    for channel in channels:
-        config, solve_rate = replay_settings(args, channel.params, f"{source}: channel {channel.name!r}")
-        check_replay_input(args.bag, channel.excitation, channel.response, args.out)
-        runs.append(ChannelReplay(channel.name, channel.excitation, channel.response, config, solve_rate))
+    runs = channel_runs(args, channels, source)
+    for run in runs:
+        check_replay_input(args.bag, run.excitation, run.response, args.out)
     topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
     progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in topics))
     try:

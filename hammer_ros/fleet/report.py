@@ -1,5 +1,5 @@
 """``DIR/fleet.html``: one self-contained page (plots as PNG data URIs, inline CSS, the diagnosis
-report's helpers): the changes, then per group the trend of each quantity over time with the
+report's helpers): the changes, then per group (and channel) the trend of each quantity over time with the
 history's median and scale, each bag's 95 % interval where its model's bounds give one, the flagged
 bags marked and the onset drawn; the failed bags."""
 
@@ -47,7 +47,7 @@ def render_report(series: Sequence[GroupSeries], tests: dict[str, dict[str, Seri
 
     matplotlib.use("Agg", force=True)
     failed = [r for r in rows if r.get("error")]
-    by_group = {s.group: s for s in series}
+    by_group = {s.key: s for s in series}
     verdict = (f"<b>{len(changes)} change(s)</b> in {len({c.group for c in changes})} of {len(series)} group(s)"
                if changes else f"<b>No change</b> in {len(series)} group(s)")
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
@@ -74,14 +74,17 @@ def render_report(series: Sequence[GroupSeries], tests: dict[str, dict[str, Seri
     else:
         parts.append("<p>No quantity of any group departs from its history.</p>")
     for s in series:
-        flagged = sorted({c.quantity for c in changes if c.group == s.group})
+        flagged = sorted({c.quantity for c in changes if c.group == s.key})
         note = f" &mdash; <span class='fail'>{', '.join(QUANTITIES[q][0] for q in flagged)}</span>" if flagged else ""
-        parts.append(f"<h2>{html.escape(s.group)} ({len(s.rows)} bags){note}</h2>")
-        parts.append(embedded_png(_group_figure(s, tests.get(s.group, {}), sample_rate)))
+        parts.append(f"<h2>{html.escape(s.key)} ({len(s.rows)} bags){note}</h2>")
+        parts.append(embedded_png(_group_figure(s, tests.get(s.key, {}), sample_rate)))
     if failed:
-        parts.append("<h2>Failed bags</h2><table><tr><th>bag</th><th>group</th><th>error</th></tr>")
+        channels = any("channel" in r for r in rows)
+        parts.append("<h2>Failed bags</h2><table><tr><th>bag</th><th>group</th>"
+                     + ("<th>channel</th>" if channels else "") + "<th>error</th></tr>")
         parts += [f"<tr><td>{html.escape(r['path'])}</td><td>{html.escape(r['group'])}</td>"
-                  f"<td class='fail'>{html.escape(str(r['error']))}</td></tr>" for r in failed]
+                  + (f"<td>{html.escape(str(r.get('channel')))}</td>" if channels else "")
+                  + f"<td class='fail'>{html.escape(str(r['error']))}</td></tr>" for r in failed]
         parts.append("</table>")
     parts.append("</body></html>")
     return "\n".join(parts)

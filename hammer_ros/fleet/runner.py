@@ -3,9 +3,10 @@ tasks of a few bags each, the progress bar, checkpoints of ``fleet.parquet``, re
 
 Dask owns the scheduling and the faults of the cluster: a worker that dies (even by SIGKILL)
 loses no bag, the scheduler reruns its tasks elsewhere (a task whose workers died
-``distributed.scheduler.allowed-failures`` + 1 times becomes an error row). Tasks return only
-their row; the bags are opened by path on the workers (on a real cluster the paths, and the
-results directory, must be the same on every machine, e.g. a shared filesystem).
+``distributed.scheduler.allowed-failures`` + 1 times becomes error rows). Tasks return only
+their rows (one per bag, or per bag and channel); the bags are opened by path on the workers (on
+a real cluster the paths, and the results directory, must be the same on every machine, e.g. a
+shared filesystem).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from typing import Any
 
 from ..errors import UsageError
 from .sources import BagSource
-from .tasks import FleetSettings, run_bag
+from .tasks import FleetSettings, bag_rows, empty_row
 
 SCHEDULER_TIMEOUT_S = 5.0
 # A LocalCluster shares the machine's cores with its scheduler (in this process) and its workers' own
@@ -39,9 +40,10 @@ TAIL_SHARE = 2  # a default task holds at most 1 / (TAIL_SHARE x workers) of the
 
 @dataclass
 class FleetRun:
-    """The rows of one run (the resumed ones first) and whether Ctrl-C stopped it."""
+    """The rows of one run (the resumed ones first), its bags with rows, and whether Ctrl-C stopped it."""
 
     rows: list[dict[str, Any]] = field(default_factory=list)
+    bags: int = 0
     interrupted: bool = False
     missing: int = 0
     wall_s: float = 0.0
@@ -124,29 +126,29 @@ def task_batches(sources: Sequence[BagSource], workers: int, size: int | None = 
     return batches
 
 
-def run_batch(task: Callable[[FleetSettings, BagSource], dict], settings: FleetSettings,
+def run_batch(task: Callable[[FleetSettings, BagSource], list[dict]], settings: FleetSettings,
               batch: Sequence[BagSource]) -> list[dict]:
     """The rows of the bags of one task, in order (runs on a worker)."""
-    return [task(settings, source) for source in batch]
+    return [row for source in batch for row in task(settings, source)]
 
 
 def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, done_rows: Sequence[dict] = (),
               checkpoint: Callable[[list[dict]], None] | None = None, progress: FleetProgress | None = None,
-              task: Callable[[FleetSettings, BagSource], dict] = run_bag, batch: int | None = None) -> FleetRun:
+              task: Callable[[FleetSettings, BagSource], list[dict]] = bag_rows, batch: int | None = None) -> FleetRun:
     """Submit the bags in ``sources`` (minus those in ``done_rows``) in tasks of ``batch`` bags
     (default: ``task_batches``' shrinking tail), gather the rows as they finish; ``checkpoint(rows)`` every
     CHECKPOINT_S and at the end. Ctrl-C cancels what is left and returns what finished
     (``interrupted``)."""
     from distributed import as_completed
 
-    run = FleetRun(rows=list(done_rows), workers=worker_count(client))
     done_paths = {row["path"] for row in done_rows}
+    run = FleetRun(rows=list(done_rows), bags=len(done_paths), workers=worker_count(client))
     todo = [s for s in sources if s.path not in done_paths]
     batches = task_batches(todo, run.workers, batch)
     started = last_checkpoint = time.perf_counter()
     failed = sum(1 for row in done_rows if row.get("error"))
     progress = progress or FleetProgress(len(sources), enabled=False)
-    progress.update(len(run.rows), failed, force=True)
+    progress.update(run.bags, failed, force=True)
     futures = {}
     try:
         for i, batch in enumerate(batches):
@@ -154,11 +156,12 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
                                    pure=False)
             futures[future.key] = (future, batch)
         for future in as_completed([f for f, _ in futures.values()]):
-            rows = _rows_of(future, futures[future.key][1])
+            rows = _rows_of(future, futures[future.key][1], settings)
             future.release()
             run.rows.extend(rows)
+            run.bags += len(futures[future.key][1])
             failed += sum(bool(row.get("error")) for row in rows)
-            progress.update(len(run.rows), failed)
+            progress.update(run.bags, failed)
             if checkpoint and time.perf_counter() - last_checkpoint > CHECKPOINT_S:
                 checkpoint(run.rows)
                 last_checkpoint = time.perf_counter()
@@ -167,15 +170,16 @@ def run_fleet(client, sources: Sequence[BagSource], settings: FleetSettings, don
         client.cancel([f for f, _ in futures.values() if not f.done()])
     finally:
         progress.close()
-    run.missing = len(sources) - len(run.rows)
+    run.missing = len(sources) - run.bags
     run.wall_s = time.perf_counter() - started
     if checkpoint:
         checkpoint(run.rows)
     return run
 
 
-def _rows_of(future, batch: Sequence[BagSource]) -> list[dict]:
-    """The task's rows, or an error row per bag when Dask could not run it (e.g. KilledWorker)."""
+def _rows_of(future, batch: Sequence[BagSource], settings: FleetSettings) -> list[dict]:
+    """The task's rows, or an error row per bag (and channel) when Dask could not run it (e.g.
+    KilledWorker)."""
     if future.status == "finished":
         return future.result()
     try:
@@ -183,7 +187,7 @@ def _rows_of(future, batch: Sequence[BagSource]) -> list[dict]:
     except Exception as raised:  # cancelled, lost
         exc = raised
     reason = str(exc).strip().splitlines()[0] if exc is not None and str(exc).strip() else future.status
-    return [{"path": source.path, "group": source.group, "labels": source.label_dict, "start": None, "end": None,
-             "model": None, "diagnosis": None, "out": None, "warnings": [],
-             "error": f"{source.path}: the task failed on the cluster ({type(exc).__name__}: {reason})",
-             "seconds": None} for source in batch]
+    channels = [{"channel": c.name} for c in settings.channels] or [{}]
+    return [{**empty_row(source), **channel, "seconds": None,
+             "error": f"{source.path}: the task failed on the cluster ({type(exc).__name__}: {reason})"}
+            for source in batch for channel in channels]

@@ -90,9 +90,10 @@ class SampleBag:
 POLES = ((0.9 + 0.1j, 0.9 - 0.1j), (0.8, 0.6), (0.85 + 0.2j, 0.85 - 0.2j), (0.7, 0.5))
 
 
-def sample_joints(robots: int = 2, joints: int = 2, drift_day: int = 4, dead_zone_day: int = 5) -> list[JointSpec]:
+def sample_joints(robots: int = 2, joints: int = 2, drift_day: int | None = 4,
+                  dead_zone_day: int | None = 5) -> list[JointSpec]:
     """``robots`` x ``joints`` joints; robot_01/joint2 drifts, robot_02/joint1 (or, with one robot,
-    robot_01/joint3 when it exists) grows a dead zone."""
+    robot_01/joint3 when it exists) grows a dead zone (None: that fault nowhere)."""
     specs = []
     for r in range(1, robots + 1):
         for j in range(1, joints + 1):

@@ -1,6 +1,7 @@
 """Fleet rows as a table: the model quantities of each row, ``fleet.parquet`` (pyarrow) and back.
 
-One row per bag. Columns: ``path``, ``group``, one column per label, ``start_time`` /
+One row per bag (per bag and channel with a config of several channels). Columns: ``path``,
+``group``, ``channel`` (only with several channels), one column per label, ``start_time`` /
 ``end_time`` (UTC timestamps of the first and last sample), ``samples``, ``solves``, ``method``,
 ``order``, ``poles_re`` / ``poles_im`` / ``zeros_re`` / ``zeros_im`` (lists) with their sds
 ``poles_std_re`` / ``poles_std_im`` / ``zeros_std_re`` / ``zeros_std_im`` (lists), ``gain_std`` and
@@ -92,9 +93,15 @@ def label_keys(rows: Sequence[dict]) -> list[str]:
     return keys
 
 
+def has_channels(rows: Sequence[dict]) -> bool:
+    """Whether the rows are per channel (a ``channel`` column)."""
+    return any("channel" in row for row in rows)
+
+
 def flat_rows(rows: Sequence[dict], sample_rate: float = 0.0) -> list[dict[str, Any]]:
     """The parquet columns of each row (see the module docstring)."""
     labels = label_keys(rows)
+    channels = has_channels(rows)
     out = []
     for row in rows:
         doc, diag = row.get("model") or {}, row.get("diagnosis") or {}
@@ -102,6 +109,8 @@ def flat_rows(rows: Sequence[dict], sample_rate: float = 0.0) -> list[dict[str, 
         poles, zeros = doc.get("poles", []), doc.get("zeros", [])
         poles_std, zeros_std = doc.get("poles_std", []), doc.get("zeros_std", [])
         flat: dict[str, Any] = {"path": row["path"], "group": row["group"]}
+        if channels:
+            flat["channel"] = row.get("channel")
         flat.update({f"label_{k}" if k in RESERVED else k: row["labels"].get(k) for k in labels})
         flat.update(
             start_time=_timestamp(row.get("start")), end_time=_timestamp(row.get("end")),
@@ -127,15 +136,15 @@ def flat_rows(rows: Sequence[dict], sample_rate: float = 0.0) -> list[dict[str, 
     return out
 
 
-RESERVED = ("path", "group", "start_time", "end_time", "samples", "solves", "method", "order", "error", "out",
-            "seconds", "rms", "start", "end", *QUANTITIES)
+RESERVED = ("path", "group", "channel", "start_time", "end_time", "samples", "solves", "method", "order", "error",
+            "out", "seconds", "rms", "start", "end", *QUANTITIES)
 
 
-def _schema(labels: Sequence[str]):
+def _schema(labels: Sequence[str], channels: bool = False):
     import pyarrow as pa
 
     floats, texts = pa.float64(), pa.string()
-    fields = [("path", texts), ("group", texts)]
+    fields = [("path", texts), ("group", texts), *([("channel", texts)] if channels else [])]
     fields += [(f"label_{k}" if k in RESERVED else k, texts) for k in labels]
     fields += [("start_time", pa.timestamp("ns", tz="UTC")), ("end_time", pa.timestamp("ns", tz="UTC")),
                ("samples", pa.int64()), ("solves", pa.int64()), ("method", texts), ("order", pa.int64()),
@@ -160,7 +169,7 @@ def write_parquet(rows: Sequence[dict], path: str | Path, settings: str = "", sa
     import pyarrow.parquet as pq
 
     flat = flat_rows(rows, sample_rate)
-    schema = _schema(label_keys(rows)).with_metadata({SETTINGS_KEY: settings.encode()})
+    schema = _schema(label_keys(rows), has_channels(rows)).with_metadata({SETTINGS_KEY: settings.encode()})
     table = pa.Table.from_pylist(flat, schema=schema)
     path = Path(path)
     partial = path.with_name(f".{path.name}.partial")
@@ -182,6 +191,8 @@ def read_rows(path: str | Path) -> tuple[list[dict], str]:
                      "diagnosis": json.loads(flat["diagnosis_json"]) if flat["diagnosis_json"] else None,
                      "out": flat["out"], "warnings": json.loads(flat["warnings_json"]), "error": flat["error"],
                      "seconds": flat["seconds"]})
+        if "channel" in flat:
+            rows[-1]["channel"] = flat["channel"]
     return rows, settings
 
 
@@ -199,30 +210,37 @@ def _finite(x: float) -> float | None:
 
 @dataclass(frozen=True)
 class GroupSeries:
-    """The bags of one group with a model, in start-time order, and their quantities."""
+    """The bags of one group (and channel) with a model, in start-time order, and their quantities."""
 
     group: str
     rows: tuple[dict, ...]
     times: np.ndarray  # start of each bag, s since the epoch (bag time)
     values: dict[str, np.ndarray]  # quantity -> one value per bag (nan: not defined)
     sds: dict[str, np.ndarray] = field(default_factory=dict)  # quantity -> its sd per bag (``quantity_sds``)
+    channel: str | None = None  # the channel of a config with several
+
+    @property
+    def key(self) -> str:
+        """The series' name in the change test and the report: ``robot_01/joint2`` or
+        ``robot_01 [elbow]``."""
+        return self.group if self.channel is None else f"{self.group} [{self.channel}]"
 
 
 def group_series(rows: Sequence[dict], sample_rate: float = 0.0) -> list[GroupSeries]:
-    """Rows with a model, grouped and ordered by their bag's start time (groups by name)."""
-    groups: dict[str, list[dict]] = {}
+    """Rows with a model, grouped by group and channel (by name) and ordered by their bag's start time."""
+    groups: dict[tuple[str, str], list[dict]] = {}
     for row in rows:
         if row.get("model") and row.get("start") is not None:
-            groups.setdefault(row["group"], []).append(row)
+            groups.setdefault((row["group"], row.get("channel") or ""), []).append(row)
     out = []
-    for group in sorted(groups):
-        members = sorted(groups[group], key=lambda r: (r["start"], r["path"]))
+    for group, channel in sorted(groups):
+        members = sorted(groups[(group, channel)], key=lambda r: (r["start"], r["path"]))
         quantities = [model_quantities(r["model"], sample_rate) for r in members]
         values = {q: np.array([v[q] for v in quantities], dtype=float) for q in QUANTITIES}
         sds = [quantity_sds(r["model"], sample_rate) for r in members]
         sds_by_quantity = {q: np.array([s[q] for s in sds], dtype=float) for q in sds[0]}
         out.append(GroupSeries(group, tuple(members), np.array([r["start"] for r in members], dtype=float), values,
-                               sds_by_quantity))
+                               sds_by_quantity, members[0].get("channel")))
     return out
 
 
