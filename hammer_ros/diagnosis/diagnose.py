@@ -311,7 +311,8 @@ def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, .
 
 
 def diagnose_record(v: np.ndarray, y: np.ndarray, order: int | None = None, delay: int | None = None,
-                    split: float = 0.7) -> Diagnosis:
+                    split: float = 0.7, reference: np.ndarray | None = None) -> Diagnosis:
     """The diagnosis of one record (e.g. the live node's window): the first ``split`` of it
-    for estimation, the rest for validation. Pure function of its arguments."""
-    return diagnose(split_record(v, y, split), order, delay).diagnosis
+    for estimation, the rest for validation (``reference``: a closed loop's, ``diagnose``).
+    Pure function of its arguments."""
+    return diagnose(split_record(v, y, split, reference), order, delay).diagnosis

@@ -309,13 +309,15 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
 
 def diagnose_final(engine: StreamingEngine, config: EngineConfig, newest: int) -> dict:
     """The node's ``~/diagnosis`` JSON of the newest ``newest`` samples of the engine's window
-    (``diagnose_window``: estimation on the first 70 %, validation on the rest) with
-    ``samples``, ``stamp`` (grid time, s) and ``seconds``."""
+    (``diagnose_window``: estimation on the first 70 %, validation on the rest; with the reference
+    when the engine holds one at every one of those samples) with ``samples``, ``stamp`` (grid
+    time, s) and ``seconds``."""
     snapshot = engine.snapshot()
     v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+    r = None if snapshot.reference_window is None else snapshot.reference_window[-newest:]
     started = time.perf_counter()
     doc = {"samples": int(v.size), "stamp": snapshot.stamp if math.isfinite(snapshot.stamp) else None}
-    doc |= diagnose_window(v, y, config.order)
+    doc |= diagnose_window(v, y, config.order, r if r is not None and np.all(np.isfinite(r)) else None)
     doc["seconds"] = time.perf_counter() - started
     return doc
 
