@@ -172,6 +172,48 @@ def test_diagnose_says_closed_loop(loop_files, capsys):
     assert rows["closed"][0]["value"] > rows["closed"][0]["bound"]
 
 
+def test_diagnose_with_the_reference_fits_the_baseline_on_its_part_of_the_input(loop_files, capsys):
+    """``diagnose --reference``: the baseline fitted and judged on the reference's part of the
+    input (two-stage) has the plant's poles where the plain baseline's are biased, and names no
+    cause for the plain Hammerstein plant; the ``closed_loop`` row stays (on the measured input)
+    and says the reference was used; a bag's /topic:field gives the column's diagnosis, and so does
+    ``replay --reference --diagnose`` of a window holding the whole bag."""
+    root, closed = loop_files
+    plain = run_json(capsys, "diagnose", str(root / "closed.npz"), "--order", "3", "--json")
+    column = run_json(capsys, "diagnose", str(root / "closed.npz"), "--order", "3", "--reference", "r", "--json")
+    topic = run_json(capsys, "diagnose", str(root / "closed.mcap"), "--input", "/cmd:data", "--output",
+                     "/position:data", "--reference", "/ref:data", "--order", "3", "--json")
+    poles = {name: np.array([complex(*p) for p in doc["baseline"]["poles"]])
+             for name, doc in (("plain", plain), ("column", column), ("topic", topic))}
+    truth = closed.linear.poles
+    assert root_rss_error(truth, poles["column"]) < 0.03 < 0.06 < root_rss_error(truth, poles["plain"])  # .013, .085
+    assert root_rss_error(poles["column"], poles["topic"]) < 1e-6
+    replayed = run_json(capsys, "replay", str(root / "closed.mcap"), "--input", "/cmd:data", "--output",
+                        "/position:data", "--reference", "/ref:data", "--order", "3", "--window", str(SAMPLES),
+                        "--diagnose", "--json")
+    final = replayed["diagnosis"]  # the final window (the whole bag) diagnosed with the engine's reference
+    assert final["samples"] == SAMPLES and final["baseline"]["input"] == "reference_part"
+    assert root_rss_error(poles["column"], np.array([complex(*p) for p in final["baseline"]["poles"]])) < 1e-6
+    assert column["baseline"]["input"] == "reference_part" and "input" not in plain["baseline"]
+    assert column["cause"] == "none"  # the plain diagnosis reads the feedback as a parallel path
+    row = [e for e in column["evidence"] if e["test"] == "closed_loop"]
+    assert len(row) == 1 and row[0]["passed"] is False and "the reference was used" in row[0]["note"]
+    assert "without a reference are biased" in next(e for e in plain["evidence"] if e["test"] == "closed_loop")["note"]
+
+
+@pytest.mark.parametrize(("argv", "reason"), [
+    (["closed.npz", "--reference", "rr"], "closed.npz: no column 'rr' (set --reference; columns are u, y, r)"),
+    (["closed.npz", "--reference", "r", "--validation", "open.npz"], "open.npz: no column 'r' (set --reference"),
+    (["closed.mcap", "--input", "/cmd:data", "--output", "/position:data", "--reference", "/setpoint:data"],
+     "--reference: "),
+])
+def test_diagnose_names_a_bad_reference(loop_files, capsys, argv, reason):
+    root, _ = loop_files
+    assert main(["diagnose", str(root / argv[0]), *[str(root / a) if a.endswith(".npz") else a for a in argv[1:]]]) == 2
+    err = capsys.readouterr().err.strip()
+    assert reason in err and "\n" not in err, err
+
+
 @pytest.mark.ros
 def test_the_live_node_uses_its_reference_topic(ros_env, tmp_path):
     """A closed loop published live (header-stamped JointStates on /cmd, /ref, /position): with

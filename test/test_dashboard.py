@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from schema_check import mismatches, path_in_schema
 
+from hammer_ros.identification.closed_loop import random_loop_pair
 from hammer_ros.identification.simulate import simulate_hammerstein
 from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic
 from hammer_ros.ros.outputs import diagnosis_message, diagnostics_message, result_messages, stale_model_message
@@ -53,8 +54,8 @@ def test_the_checker_finds_an_undeclared_key_and_a_wrong_type():
 
 def test_every_message_of_every_channel_is_declared_by_its_schema():
     """A solve (model, roots, map, fit, counters), a stale model after a failed solve, a diagnosis
-    of a window with a cause (an output nonlinearity: extended model, gain, steps) and one that
-    cannot be diagnosed."""
+    of a window with a cause (an output nonlinearity: extended model, gain, steps), one that
+    cannot be diagnosed and a closed loop's with its reference (the evidence's notes)."""
     rng = np.random.default_rng(4)
     v = rng.uniform(-1, 1, 3000)
     linear = simulate_hammerstein(v, lambda x: x + 0.5 * x**3, _plant())
@@ -76,8 +77,13 @@ def test_every_message_of_every_channel_is_declared_by_its_schema():
     assert diagnosis["cause"] != "none" and diagnosis["extended"] and diagnosis["gain"], diagnosis
     undiagnosable = {"samples": 10, "stamp": None, **diagnose_window(v[:10], y[:10], 2), "seconds": 0.0}
     assert "error" in undiagnosable
+    closed, _ = random_loop_pair(104, samples=2000)  # a closed loop diagnosed with its reference: notes
+    instrumented = {"samples": 2000, "stamp": None, **diagnose_window(closed.u, closed.y, 3, closed.r), "seconds": 1.0}
+    assert instrumented["baseline"]["input"] == "reference_part"
+    assert any(e.get("note") for e in instrumented["evidence"])
     sent: dict[str, int] = {}
-    for messages in (results, stale, [diagnosis_message(diagnosis)], [diagnosis_message(undiagnosable)]):
+    for messages in (results, stale, [diagnosis_message(diagnosis)], [diagnosis_message(undiagnosable)],
+                     [diagnosis_message(instrumented)]):
         for channel, message in dashboard_messages(messages, stamp):
             assert mismatches(CHANNELS[channel][1], json.loads(json.dumps(message))) == [], channel
             sent[channel] = sent.get(channel, 0) + 1

@@ -175,6 +175,45 @@ def test_three_channels_over_one_joint_state_replay_to_each_joints_model(arm_bag
         assert single["poles"] == doc["channels"][channel]["poles"]
 
 
+def test_several_channels_diagnose_and_write_dashboards_per_channel(arm_bags, capsys, tmp_path):
+    """``--diagnose`` and ``--dashboard-out`` with three channels: each channel's final window
+    diagnosed (its baseline's poles the joint's), in its JSON entry, in --out as
+    /hammer_ros/NAME/diagnosis at the channel's final stamp, and in the dashboard file under
+    /hammer_ros/NAME/dashboard/."""
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    from hammer_ros.diagnosis.causes import CAUSES
+    from hammer_ros.ros.dashboard import dashboard_topic
+
+    _, shuffled, _ = arm_bags
+    config = tmp_path / "arm.yaml"
+    config.write_text(ARM_CONFIG)
+    out, dashboard_out = tmp_path / "arm.mcap", tmp_path / "dash.mcap"
+    doc = run_json(capsys, "replay", str(shuffled), "--config", str(config), "--out", str(out), "--dashboard-out",
+                   str(dashboard_out), "--diagnose", "--json")
+    with AnyReader([out]) as reader:
+        messages = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+    with open(dashboard_out, "rb") as f:
+        dashboard: dict[str, list[dict]] = {}
+        for _, channel, message in make_reader(f).iter_messages():
+            dashboard.setdefault(channel.topic, []).append(json.loads(message.data))
+    for name, joint in (("shoulder", "shoulder_pan_joint"), ("elbow", "elbow_joint"), ("wrist", "wrist_1_joint")):
+        diagnosis = doc["channels"][name]["diagnosis"]
+        assert diagnosis["samples"] == 3000 and diagnosis["cause"] in CAUSES
+        found = np.array([complex(*p) for p in diagnosis["baseline"]["poles"]])
+        assert root_rss_error(PLANTS[joint].poles, found) < 0.05, name  # noise-free: the joint's plant
+        written = [(t, json.loads(m.data)) for topic, t, m in messages if topic == f"/hammer_ros/{name}/diagnosis"]
+        assert [d for _, d in written] == [diagnosis]
+        assert written[0][0] == max(t for topic, t, _ in messages if topic.startswith(f"/hammer_ros/{name}/"))
+        node = f"hammer_ros/{name}"
+        shown = dashboard[dashboard_topic("diagnosis", node)]
+        assert [{k: v for k, v in d.items() if k != "timestamp"} for d in shown] == [diagnosis]
+        models = dashboard[dashboard_topic("model", node)]
+        assert len(models) == doc["channels"][name]["solves"]  # every solve's model, on the channel's own topic
+    assert not any(topic.startswith("/hammer_ros/dashboard/") for topic in dashboard)  # no channel-less topics
+
+
 @pytest.mark.parametrize(("change", "reason"), [
     ("channels: [shoulder, elbow, shoulder]", "channels: duplicate channel 'shoulder'"),
     ("channels: [shoulder, 2nd]", "channels[1]: name '2nd' must be a name like"),

@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("diagnose", help="what the model gets wrong, why, and the extended model")
     p.add_argument("data", metavar="DATA")
-    add_data_options(p)
+    add_data_options(p, reference=True)
     p.add_argument("--validation", default=None, metavar="DATA2", help="validation record (default: --split)")
     p.add_argument("--split", type=split_choice, default=0.7, metavar="F|auto",
                    help="estimation fraction of DATA (default 0.7: validation on the last 30 %%), or auto: an "

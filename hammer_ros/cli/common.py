@@ -70,7 +70,8 @@ def add_data_options(p: argparse.ArgumentParser, reference: bool = False) -> Non
     if reference:
         p.add_argument("--reference", default=None, metavar="COLUMN_OR_TOPIC:FIELD",
                        help="closed loop: the external reference r (CSV/NPZ column or /topic:field.path), the "
-                       "instrument of cls-arx, cls-markov and plls-hammerstein")
+                       "instrument of cls-arx, cls-markov and plls-hammerstein (diagnose: every model is fitted "
+                       "and judged on the reference's part of the input)")
 
 
 

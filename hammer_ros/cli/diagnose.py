@@ -1,18 +1,22 @@
-"""``hammer-ros diagnose DATA [--validation DATA2 | --split F] [--order N] [--json] [--report FILE.html]``
+"""``hammer-ros diagnose DATA [--validation DATA2 | --split F] [--order N] [--reference COLUMN | /topic:field]
+[--json] [--report FILE.html]``
 (the subparser lives in ``hammer_ros.cli``; this is its thin adapter)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
 import numpy as np
 
 from ..diagnosis.causes import EXTENSION, MEANING
+from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST
 from ..diagnosis.coverage import auto_split
 from ..diagnosis.diagnose import Diagnosis, diagnose
 from ..diagnosis.split import Split, check_split, split_record
 from ..errors import IdentificationError, UsageError
+from ..identification.instrumental import check_reference
 
 
 def load_split(args: argparse.Namespace) -> Split:
@@ -24,10 +28,13 @@ def load_split(args: argparse.Namespace) -> Split:
         validation = load_data(args.validation, args)
         split = Split(record.v, record.y, validation.v, validation.y, continuous=False)
         check_split(split)
-        return split
+        if record.r is None:
+            return split
+        return replace(split, r_est=check_reference(record.r, record.v.size),
+                       r_val=check_reference(validation.r, validation.v.size))
     if args.split == "auto":
-        return auto_split(record.v, record.y)
-    return split_record(record.v, record.y, args.split)
+        return auto_split(record.v, record.y, record.r)
+    return split_record(record.v, record.y, args.split, record.r)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,6 +70,9 @@ def summary(d: Diagnosis) -> str:
              f"cause     {d.cause} (confidence {d.confidence:.2f}): {MEANING[d.cause]}"]
     if d.split_note:
         lines.insert(0, f"split     {d.split_note}")
+    closed = [e for e in d.evidence if e.test == CLOSED_LOOP_TEST and e.note]
+    if closed:
+        lines.append(f"feedback  {'closed loop' if not closed[0].passed else 'no feedback found'}; {closed[0].note}")
     if d.coverage and d.coverage["judged_samples"] < d.coverage["validation_samples"]:
         lines.insert(1 if d.split_note else 0, f"coverage  {d.coverage['judged_on']}")
     if d.extended is not None:

@@ -245,23 +245,23 @@ def channel_runs(args: argparse.Namespace, channels: list[Channel], source: str)
 
 def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict, source: str) -> int:
     """``replay`` of a config with several channels (``replay_channels``): the command-line
-    identify options apply to every channel; JSON ``{"channels": {NAME: <replay JSON>},
+    identify options apply to every channel, ``--dashboard-out`` and ``--diagnose`` per channel
+    (under ``/hammer_ros/NAME/``); JSON ``{"channels": {NAME: <replay JSON, with its "diagnosis">},
     "samples", "solves", "wall_s"}`` (samples and solves summed over the channels)."""
     if args.rate is not None:
         raise UsageError(f"--rate: not with several channels ({source} has {len(channels)}); replay runs them "
                          "as fast as possible")
-    for option, given in (("--dashboard-out", args.dashboard_out), ("--diagnose", args.diagnose)):
-        if given:
-            raise UsageError(f"{option}: not with several channels ({source} has {len(channels)}) yet; replay one "
-                             "channel's config for it")
     runs = channel_runs(args, channels, source)
     for run in runs:
-        check_replay_input(args.bag, run.excitation, run.response, args.out)
+        check_replay_input(args.bag, run.excitation, run.response, args.out, args.dashboard_out)
+    for option, path in (("--out", args.out), ("--dashboard-out", args.dashboard_out)):
+        if path:
+            check_output_path(path, option)
     topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
     progress = Progress(sum(bag_message_counts(args.bag).get(t, 0) for t in topics))
     try:
         results = replay_channels(args.bag, runs, frame_id=str(params.get("frame_id", "")), out=args.out,
-                                  progress=progress.update)
+                                  progress=progress.update, dashboard_out=args.dashboard_out, diagnose=args.diagnose)
     finally:
         progress.close()
     next(iter(results.values())).read.report(args.bag)
@@ -276,6 +276,9 @@ def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict
     for name, channel_doc in docs.items():
         print(f"channel  {name}")
         print(format_model(channel_doc))
+        if results[name].diagnosis is not None:
+            print(f"diagnosis {results[name].diagnosis.get('cause', results[name].diagnosis.get('error'))}")
+    files = ", ".join(str(Path(p)) for p in (args.out, args.dashboard_out) if p)
     print(f"replay   {len(docs)} channels, {doc['samples']} samples, {doc['solves']} solves in {wall:.2f} s"
-          + (f"; {next(iter(results.values())).written} messages -> {Path(args.out)}" if args.out else ""))
+          + (f"; {next(iter(results.values())).written} messages -> {files}" if files else ""))
     return 0

@@ -40,6 +40,8 @@ AR_ORDER = 10
 INPUT_LAGS = 60  # the residual's part explained by u(k) .. u(k - 60) is removed first
 TEST_NAME = "closed_loop"
 WARNING = "the excitation depends on the response: closed loop; estimates without a reference are biased"
+REFERENCE_NOTE = ("the reference was used: the baseline and the extensions are estimated and judged on the "
+                  "reference's part of the input (the two-stage method), which the feedback does not bias")
 
 
 def innovations(u: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
@@ -68,9 +70,12 @@ def future_input_correlation(u: np.ndarray, residual: np.ndarray,
     return r, bartlett_cross_sigma(nu, e)
 
 
-def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX_LAG) -> Evidence:
-    """The ``closed_loop`` evidence row of ``diagnose`` for the input ``u`` and a model's residual
-    (``passed`` False: the input depends on past residuals, a closed loop)."""
+def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX_LAG,
+                         reference: bool = False) -> Evidence:
+    """The ``closed_loop`` evidence row of ``diagnose`` for the measured input ``u`` and a model's
+    residual (``passed`` False: the input depends on past residuals, a closed loop); its note says
+    what that means for the estimates (``reference``: the diagnosis used one)."""
     r, sigma = future_input_correlation(u, residual, max_lag)
     value, bound = float(np.max(np.abs(r))), simultaneous_level(max_lag) * sigma
-    return Evidence(TEST_NAME, value, bound, value <= bound)
+    note = REFERENCE_NOTE if reference else ("" if value <= bound else WARNING)
+    return Evidence(TEST_NAME, value, bound, value <= bound, note=note)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .residual_tests import Evidence
-from .split import Split, check_split
+from .split import Split, check_split, with_reference
 
 COVERAGE_BOUND = 0.02  # share of validation samples outside the estimation range above which the row fails
 RANGE_MARGIN = 0.02  # share of the estimation range by which it is widened on either side
@@ -81,21 +81,23 @@ def input_coverage(v_est: np.ndarray, v_val: np.ndarray, memory: int) -> InputCo
     return InputCoverage(lo, hi, float(np.min(v_val)), float(np.max(v_val)), float(np.mean(~inside)), covered, memory)
 
 
-def auto_split(v: np.ndarray, y: np.ndarray) -> Split:
+def auto_split(v: np.ndarray, y: np.ndarray, reference: np.ndarray | None = None) -> Split:
     """An estimation part that covers the validation input's range where the record allows it:
     the validation part is the last or the first 30 %, 25 % or 20 % of the record (in that order
     of preference: the default, the last 30 %, first), the first of these whose input lies in the
     rest's range (``input_range`` passes, without memory); else the one with the smallest share
     outside. A validation part at the start is a separate record for the models (simulated from
     rest at its first outputs' operating point), the estimation part the rest of the record.
-    ``Split.note`` says what was picked."""
+    ``Split.note`` says what was picked; ``reference`` (closed loop) is cut like the record."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     candidates = []
     for share in AUTO_VALIDATION_SHARES:
         cut = int(round((1.0 - share) * v.size))
-        candidates.append((f"the last {100 * share:.0f} %", Split(v[:cut], y[:cut], v[cut:], y[cut:], True)))
+        candidates.append((f"the last {100 * share:.0f} %", with_reference(
+            Split(v[:cut], y[:cut], v[cut:], y[cut:], True), reference, slice(None, cut), slice(cut, None))))
         cut = int(round(share * v.size))
-        candidates.append((f"the first {100 * share:.0f} %", Split(v[cut:], y[cut:], v[:cut], y[:cut], False)))
+        candidates.append((f"the first {100 * share:.0f} %", with_reference(
+            Split(v[cut:], y[cut:], v[:cut], y[:cut], False), reference, slice(cut, None), slice(None, cut))))
     scored = [(input_coverage(s.v_est, s.v_val, 0).outside, i, name, s) for i, (name, s) in enumerate(candidates)]
     passing = [c for c in scored if c[0] <= COVERAGE_BOUND]
     outside, _, name, split = passing[0] if passing else min(scored, key=lambda c: (c[0], c[1]))

@@ -49,6 +49,7 @@ from .residual_tests import CorrelationTest, Evidence, residual_tests
 from .split import MIN_SAMPLES, Split, split_record
 
 MIN_GAIN = 1.05
+INSTRUMENTED_INPUT = "reference_part"  # ``baseline.input`` with a reference: the models run on v_r, not v
 BLIND_MIN_GAIN = 1.15  # without a significant signature, a cause must gain this much
 # extensions that are simulation models of the input alone (not time_varying: it re-fits on the measured
 # validation output, so any model error looks like a gain; not periodic_disturbance: it needs spectral lines)
@@ -138,9 +139,15 @@ def _score(structure: str, split: Split, y_sim: np.ndarray) -> ModelScore:
 def diagnose(split: Split, order: int | None = None, delay: int | None = None) -> DiagnosisRun:
     """The diagnosis of the record in ``split`` (``order``: the user's nominal order; None =
     chosen on the estimation data). Without a given ``delay`` a dead time is searched first
-    (``select_dead_time``) and moved into the input of every model."""
+    (``select_dead_time``) and moved into the input of every model. With a reference in the
+    split (closed loop) every model is fitted and judged on the reference's part of the input
+    (``Split.reference_input``, the two-stage method); the ``closed_loop`` row stays on the
+    measured input."""
+    measured = split
+    split = split.reference_input()
     dead_time = 0 if delay is not None else select_dead_time(split.v_est, split.y_est, order)
     split = split.delayed_input(dead_time)
+    measured_v_val = measured.delayed_input(dead_time).v_val
     base = fit_baseline(split.v_est, split.y_est, order, delay)
     skip = transient_samples(base.linear.poles, split.n_est)
     coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5))
@@ -216,7 +223,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     tied = _within_noise(split, extensions, gains, cause) if cause != "none" else []
     evidence = (coverage.evidence(), *(t.evidence() for t in correlation), *(t.evidence for t in cause_tests))
     confidence = _confidence(cause, gains, evidence) * (TIED_CONFIDENCE if tied else 1.0)
-    evidence += (closed_loop_evidence(split.v_val[rows], e_val[rows]),)
+    evidence += (closed_loop_evidence(measured_v_val[rows], e_val[rows], reference=split.r_est is not None),)
     chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
     final = None if chain is None else chain.final
     extended_score = None if final is None else _score(final.structure, split, final.validation_output)
@@ -235,6 +242,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         candidates=tuple(sorted(gains.items(), key=lambda kv: -kv[1])),
         details=details,
         baseline_model={"order": base.order, "delay": base.delay, "dead_time": dead_time,
+                        **({"input": INSTRUMENTED_INPUT} if split.r_est is not None else {}),
                         "poles": [[float(p.real), float(p.imag)] for p in base.linear.poles],
                         "nonlinearity": base.nonlinearity.to_json((float(np.min(split.v_est)),
                                                                     float(np.max(split.v_est))))},
@@ -303,7 +311,8 @@ def _confidence(cause: str, gains: dict[str, float], evidence: tuple[Evidence, .
 
 
 def diagnose_record(v: np.ndarray, y: np.ndarray, order: int | None = None, delay: int | None = None,
-                    split: float = 0.7) -> Diagnosis:
+                    split: float = 0.7, reference: np.ndarray | None = None) -> Diagnosis:
     """The diagnosis of one record (e.g. the live node's window): the first ``split`` of it
-    for estimation, the rest for validation. Pure function of its arguments."""
-    return diagnose(split_record(v, y, split), order, delay).diagnosis
+    for estimation, the rest for validation (``reference``: a closed loop's, ``diagnose``).
+    Pure function of its arguments."""
+    return diagnose(split_record(v, y, split, reference), order, delay).diagnosis

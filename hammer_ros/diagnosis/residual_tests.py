@@ -48,9 +48,11 @@ class Evidence:
     bound: float
     passed: bool
     cause: str | None = None
+    note: str = ""  # advice in plain words (the ``closed_loop`` row: what the feedback means here)
 
     def to_json(self) -> dict:
-        return {"test": self.test, "value": float(self.value), "bound": float(self.bound), "passed": bool(self.passed)}
+        doc = {"test": self.test, "value": float(self.value), "bound": float(self.bound), "passed": bool(self.passed)}
+        return doc | ({"note": self.note} if self.note else {})
 
 
 @dataclass(frozen=True, eq=False)

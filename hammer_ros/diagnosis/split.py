@@ -9,6 +9,12 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from ..errors import UsageError
+from ..identification.instrumental import (
+    REFERENCE_LAGS,
+    check_reference,
+    projection_coefficients,
+    projection_columns,
+)
 from ..identification.regression import delayed
 
 MIN_SAMPLES = 60
@@ -30,6 +36,8 @@ class Split:
     continuous: bool
     judged: np.ndarray | None = None  # the validation samples a model is judged on (None: all; ``coverage``)
     note: str = ""  # how the record was split, in plain words (``auto_split``)
+    r_est: np.ndarray | None = None  # closed loop: the external reference over each part (None: open loop)
+    r_val: np.ndarray | None = None
 
     @property
     def judged_rows(self) -> np.ndarray:
@@ -76,6 +84,21 @@ class Split:
             return replace(self, v_est=v[: self.n_est], v_val=v[self.n_est :])
         return replace(self, v_est=held_back(self.v_est, samples), v_val=held_back(self.v_val, samples))
 
+    def reference_input(self, lags: int = REFERENCE_LAGS) -> Split:
+        """The same split with the input v replaced by v_r, its part the reference explains (the
+        first stage of the two-stage method, ``instrumental.reference_part``): the projection
+        v_r(k) = c + sum_{i=0}^{lags} s_i r(k - i) fitted on the estimation part only and applied
+        to the validation part (continuing over the whole record when continuous, else on the
+        validation record's own reference). Unchanged without a reference."""
+        if self.r_est is None or self.r_val is None:
+            return self
+        theta = projection_coefficients(self.v_est, self.r_est, lags)
+        if self.continuous:
+            v = projection_columns(np.concatenate([self.r_est, self.r_val]), lags) @ theta
+            return replace(self, v_est=v[: self.n_est], v_val=v[self.n_est :])
+        return replace(self, v_est=projection_columns(self.r_est, lags) @ theta,
+                       v_val=projection_columns(self.r_val, lags) @ theta)
+
     def estimation_tail(self, samples: int) -> Split:
         """The same split with only the last ``samples`` estimation samples (to bound the cost
         of slow fits on long records); validation unchanged."""
@@ -114,15 +137,26 @@ def from_rest_at(simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y0
     return simulate(np.concatenate([np.full(REST_SAMPLES, u0), v]))[REST_SAMPLES:]
 
 
-def split_record(v: np.ndarray, y: np.ndarray, fraction: float = 0.7) -> Split:
-    """The first ``fraction`` of the record for estimation, the rest for validation."""
+def split_record(v: np.ndarray, y: np.ndarray, fraction: float = 0.7, reference: np.ndarray | None = None) -> Split:
+    """The first ``fraction`` of the record for estimation, the rest for validation
+    (``reference``: the closed loop's reference r, split alike)."""
     if not 0.0 < fraction < 1.0:
         raise UsageError(f"--split: the estimation fraction must be between 0 and 1 (got {fraction})")
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     cut = int(round(fraction * v.size))
-    split = Split(v[:cut], y[:cut], v[cut:], y[cut:], continuous=True)
+    split = with_reference(Split(v[:cut], y[:cut], v[cut:], y[cut:], continuous=True), reference, slice(None, cut),
+                           slice(cut, None))
     check_split(split)
     return split
+
+
+def with_reference(split: Split, reference: np.ndarray | None, est: slice, val: slice) -> Split:
+    """``split`` with the record's reference cut like its estimation (``est``) and validation
+    (``val``) parts (None: unchanged)."""
+    if reference is None:
+        return split
+    r = check_reference(reference, split.n_est + split.v_val.size)
+    return replace(split, r_est=r[est], r_val=r[val])
 
 
 def check_split(split: Split) -> None:

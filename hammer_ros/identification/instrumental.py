@@ -46,14 +46,23 @@ def check_reference(reference: np.ndarray | None, length: int) -> np.ndarray | N
     return reference
 
 
+def projection_columns(signal: np.ndarray, lags: int) -> np.ndarray:
+    """[1, signal(k), ..., signal(k - lags)] per sample (zero before the record)."""
+    signal = np.asarray(signal, dtype=float)
+    padded = np.concatenate([np.zeros(lags), signal])
+    rows = np.arange(signal.size) + lags
+    return np.column_stack([np.ones(signal.size), lagged_columns(padded, range(lags + 1), rows)])
+
+
+def projection_coefficients(x: np.ndarray, signal: np.ndarray, lags: int) -> np.ndarray:
+    """[c, s_0, ..., s_lags] of the least-squares fit of x by ``projection_columns(signal, lags)``."""
+    return solve_least_squares(projection_columns(signal, lags), np.asarray(x, dtype=float))
+
+
 def causal_projection(x: np.ndarray, signal: np.ndarray, lags: int) -> np.ndarray:
     """c + sum_{i=0}^{lags} s_i signal(k - i): the least-squares projection of x on the present
     and past of ``signal`` (zero before the record)."""
-    x = np.asarray(x, dtype=float)
-    rows = np.arange(x.size)
-    padded = np.concatenate([np.zeros(lags), np.asarray(signal, dtype=float)])
-    columns = np.column_stack([np.ones(x.size), lagged_columns(padded, range(lags + 1), rows + lags)])
-    return columns @ solve_least_squares(columns, x)
+    return projection_columns(signal, lags) @ projection_coefficients(x, signal, lags)
 
 
 def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_LAGS) -> np.ndarray:

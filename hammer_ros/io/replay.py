@@ -309,13 +309,15 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
 
 def diagnose_final(engine: StreamingEngine, config: EngineConfig, newest: int) -> dict:
     """The node's ``~/diagnosis`` JSON of the newest ``newest`` samples of the engine's window
-    (``diagnose_window``: estimation on the first 70 %, validation on the rest) with
-    ``samples``, ``stamp`` (grid time, s) and ``seconds``."""
+    (``diagnose_window``: estimation on the first 70 %, validation on the rest; with the reference
+    when the engine holds one at every one of those samples) with ``samples``, ``stamp`` (grid
+    time, s) and ``seconds``."""
     snapshot = engine.snapshot()
     v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+    r = None if snapshot.reference_window is None else snapshot.reference_window[-newest:]
     started = time.perf_counter()
     doc = {"samples": int(v.size), "stamp": snapshot.stamp if math.isfinite(snapshot.stamp) else None}
-    doc |= diagnose_window(v, y, config.order)
+    doc |= diagnose_window(v, y, config.order, r if r is not None and np.all(np.isfinite(r)) else None)
     doc["seconds"] = time.perf_counter() - started
     return doc
 
@@ -349,12 +351,17 @@ class ChannelReplay:
 
 def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id: str = "",
                     out: str | Path | None = None, node_name: str = NODE_NAME,
-                    progress: Callable[[int, int, int, bool], None] | None = None) -> dict[str, ReplayResult]:
+                    progress: Callable[[int, int, int, bool], None] | None = None,
+                    dashboard_out: str | Path | None = None, diagnose: bool = False,
+                    diagnosis_window: int = DIAGNOSIS_WINDOW) -> dict[str, ReplayResult]:
     """Several channels of one bag in one pass (every channel checked by ``check_replay_input``):
     each topic is read once per message and its samples go to the engine of every channel that
     uses them (``iter_role_samples``); each channel solves every 1 / its solve_rate seconds of
     bag time and at the end, in process. ``out``: the results of channel NAME under
-    ``/<node_name>/NAME/...`` and its status in /diagnostics (hardware_id ``<node_name>/NAME``).
+    ``/<node_name>/NAME/...`` and its status in /diagnostics (hardware_id ``<node_name>/NAME``);
+    ``dashboard_out``: their dashboard channels under ``/<node_name>/NAME/dashboard/...``;
+    ``diagnose``: each channel's final window diagnosed (``diagnose_final``), written as
+    ``/<node_name>/NAME/diagnosis`` at the channel's final stamp and kept in its result.
     Returns each channel's ReplayResult (``document()`` = its ``replay --json``)."""
     topics = {spec.topic for c in channels for spec in (c.excitation, c.response)}
     total = sum(bag_message_counts(bag).get(topic, 0) for topic in topics)
@@ -363,9 +370,20 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
     outcomes: list[list[SolveOutcome | None]] = [[None, None] for _ in channels]  # (last good, last)
     next_solve: list[float | None] = [None] * len(channels)
     writer = ResultWriter(out) if out else None
+    try:
+        dashboard = JsonWriter(dashboard_out) if dashboard_out else None
+    except UsageError:
+        if writer:
+            writer.close()
+        raise
     started = time.perf_counter()
     done, bag_start, bag_time, bag_time_ns = 0, None, float("nan"), 0
     input_stamps = [InputStamps() for _ in channels]  # each channel's results take its input's exact stamps
+    final_stamps = [0] * len(channels)  # the stamp of each channel's last results
+    diagnoses: list[dict | None] = [None] * len(channels)
+
+    def send(index: int, messages: list[tuple[str, str, dict]], stamp: int) -> None:
+        record_results(writer, messages, stamp, f"{node_name}/{channels[index].name}", dashboard_writer=dashboard)
 
     def solve(index: int, bag_time: float) -> None:
         engine = engines[index]
@@ -373,17 +391,17 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
         outcome = engine.solve()
         last_ok = outcome if outcome.ok else outcomes[index][0]
         outcomes[index] = [last_ok, outcome]
-        if writer is None:
-            return
         stamp = input_stamps[index].exact(outcome.stamp) if math.isfinite(outcome.stamp) else bag_time_ns
-        name = f"{node_name}/{channels[index].name}"
+        final_stamps[index] = stamp
+        if writer is None and dashboard is None:
+            return
         messages = result_messages(outcome, stamp, frame_id)
         if not outcome.ok and last_ok is not None:
             messages.append(stale_model_message(last_ok, outcome))
-        diagnostics = diagnostics_message(engine.stats, outcome, stamp, name)
+        diagnostics = diagnostics_message(engine.stats, outcome, stamp, f"{node_name}/{channels[index].name}")
         diagnostics["status"][0]["values"].extend(bag_values(read))
         messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-        record_results(writer, messages, stamp, name)
+        send(index, messages, stamp)
 
     roles = [((i, stream), spec) for i, c in enumerate(channels)
              for stream, spec in (("excitation", c.excitation), ("response", c.response))]
@@ -414,13 +432,19 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
                 progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)
         for i in range(len(channels)):
             solve(i, bag_time)
+        for i in range(len(channels) if diagnose else 0):
+            diagnoses[i] = diagnose_final(engines[i], channels[i].config, diagnosis_window)
+            send(i, [diagnosis_message(diagnoses[i])], final_stamps[i])
         if progress:
             progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), True)
     finally:
+        if dashboard:
+            dashboard.close()
         if writer:
             writer.close()
     wall = time.perf_counter() - started
     first = float(bag_start) if bag_start is not None else float("nan")
+    written = (writer.count if writer else 0) + (dashboard.count if dashboard else 0)
     return {c.name: ReplayResult(str(bag), outcomes[i][0], outcomes[i][1], engines[i].stats, read, done, total,
-                                 wall, writer.count if writer else 0, first, bag_time)
+                                 wall, written, first, bag_time, diagnosis=diagnoses[i])
             for i, c in enumerate(channels)}

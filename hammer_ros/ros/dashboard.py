@@ -86,7 +86,7 @@ CHANNELS: dict[str, tuple[str, dict[str, Any]]] = {
         "baseline": _object({**_SCORE, **_MODEL, "delay": _INTEGER, "dead_time": _INTEGER}, others=_ANY),
         "cause": {"type": ["string", "null"]}, "confidence": _NUMBER_OR_NULL,
         "evidence": _list_of({"test": _STRING, "value": _NUMBER_OR_NULL, "bound": _NUMBER_OR_NULL,
-                              "passed": _BOOLEAN}),
+                              "passed": _BOOLEAN, "note": _STRING}),
         "extended": _object(_SCORE, nullable=True, others=_ANY),  # + the cause's model (its details)
         "gain": _object({"rms_ratio": _NUMBER}, nullable=True),
         "candidates": _list_of({"cause": _STRING, "rms_ratio": _NUMBER}),

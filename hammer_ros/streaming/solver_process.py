@@ -72,14 +72,15 @@ class Diagnose:
     order: int
 
 
-def diagnose_window(v: np.ndarray, y: np.ndarray, order: int) -> dict[str, Any]:
+def diagnose_window(v: np.ndarray, y: np.ndarray, order: int, reference: np.ndarray | None = None) -> dict[str, Any]:
     """The ``hammer_ros.diagnosis.diagnose_record`` JSON of the window (v, y) (estimation on its
-    first 70 %, validation on the rest), or {"error": why} when the window cannot be diagnosed."""
+    first 70 %, validation on the rest; with a closed loop's ``reference`` over the window, the
+    instrumented diagnosis), or {"error": why} when the window cannot be diagnosed."""
     from ..diagnosis.diagnose import diagnose_record  # imported on first use: matplotlib-free, but heavy
 
     try:
         with np.errstate(all="ignore"):
-            return diagnose_record(v, y, order=order).to_json()
+            return diagnose_record(v, y, order=order, reference=reference).to_json()
     except (UsageError, ValueError, np.linalg.LinAlgError) as exc:
         return {"error": f"window not diagnosable: {exc}"}
 
