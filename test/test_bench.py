@@ -417,3 +417,28 @@ def test_a_search_out_of_runs_below_its_limit_has_a_lower_bound(monkeypatch):
         _stand_in_probe({"node": 50_000.0, "bare": 10_500.0, "foxglove": 50_000.0}, runs))
     assert lower["node"] and lower["foxglove"] and "node" not in first_loss and best["node"] > 10_000.0
     assert not lower["bare"] and best["bare"] <= 10_500.0 < first_loss["bare"]
+
+
+def test_the_six_joint_row_searches_the_node_and_the_bare_subscriber_only(tmp_path):
+    """The six-joint row (no Foxglove run): the ladder brackets both limits, the goal is node / bare
+    >= 0.9 alone, and its figures are not stored as seeds of the quick search (which has no such row)."""
+    limits = {"node": 17_000.0, "bare": 15_500.0}
+    runs: list = []
+    best, first_loss, tried, lower = bench._zero_loss_limits(1, (4000.0, 8000.0, 16000.0, 24000.0), 1.0,
+                                                             _stand_in_probe(limits, runs), None, ("node", "bare"))
+    assert set(best) == {"node", "bare"} and {w for w, _ in runs} == {"node", "bare"}
+    for who, limit in limits.items():
+        assert best[who] <= limit < first_loss[who], (who, best[who], first_loss[who])
+    row = bench._node_row(1, best, first_loss, tried, lower, {}, joints=6)
+    assert row["case"].startswith("JointState of 6 joints") and row["foxglove"] == "-"
+    assert row["goal"] is (row["ratio"] >= 0.9) and row["ratio"] >= 0.9
+    slow = bench._node_row(1, {"node": 8000.0, "bare": 16000.0}, {"node": 9000.0, "bare": 18000.0}, [],
+                           {"node": False, "bare": False}, {}, joints=6)
+    assert slow["goal"] is False
+    message = bench._node_row(1, {"node": 30_000.0, "bare": 30_000.0, "foxglove": 30_000.0},
+                              {"node": 33_000.0, "bare": 33_000.0, "foxglove": 33_000.0}, [],
+                              {"node": False, "bare": False, "foxglove": False}, {})
+    path = tmp_path / "limits.json"
+    bench._store_node_limits([message, row], path)
+    assert bench.stored_node_limits(path)["limits"] == {"1": {"node": 30_000.0, "bare": 30_000.0,
+                                                              "foxglove": 30_000.0}}

@@ -33,6 +33,7 @@ import contextlib
 import cProfile
 import csv
 import datetime
+import functools
 import importlib.util
 import io
 import json
@@ -97,6 +98,7 @@ class Plan:
     # step: the seeded search on rungs this far apart (``_seeded_limits``; ``node_rates`` are then
     # only the start without a stored figure)
     node_step: float | None = None
+    node_joint_rates: tuple[float, ...] = ()  # the six-joint row's ladder (full bench only: 70 s more in the quick one)
 
 
 QUICK = Plan(
@@ -112,7 +114,8 @@ FULL = Plan(
     ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
     node_rates={1: (1000.0, 2000.0, 5000.0, 7000.0, 10000.0, 12000.0, 14000.0, 20000.0),
                 100: (500.0, 1000.0, 2000.0, 5000.0, 6000.0, 7000.0, 8500.0, 10000.0, 14000.0)},
-    node_seconds=3.0, replay_messages={1: 100_000, 100: 10_000}, replay_repeats=3, solve_windows=(1000, 4000, 16000),
+    node_seconds=3.0, node_joint_rates=(4000.0, 8000.0, 16000.0, 24000.0),
+    replay_messages={1: 100_000, 100: 10_000}, replay_repeats=3, solve_windows=(1000, 4000, 16000),
     solve_repeats=200, slow_solve_repeats=15, peer_frols=((3, 3, 15), (3, 4, 20), (3, 5, 30)),
     memory_windows=(10_000, 100_000, 1_000_000),
 )
@@ -379,14 +382,16 @@ def _cpu_cell(use: dict[str, float]) -> str:
     return f"{use['us_per_message']:.0f} us, {use['subscriber_cores']:.2f} + {use['publisher_cores']:.2f}"
 
 
-def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe, cpu: dict | None = None):
+def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe, cpu: dict | None = None,
+                      subscribers: tuple[str, ...] = ("node", "bare", "foxglove")):
     """(highest lossless rate, first rate that was not lossless, rates tried, lower bounds) of the
     node, the bare subscriber and the node with a Foxglove client: the ladder
     (``_past_the_bare_limit``), then REFINE_STEPS geometric midpoints between each one's last
     lossless and first other rate. A figure is a lower bound (``lower[who]``) when no run of that
     subscriber lost samples: every rate above it was not a measurement (the publisher could not
-    keep it, the node refused it) or the ladder reached its cap. ``cpu``: filled as by ``_losses``."""
-    best = {"node": 0.0, "bare": 0.0, "foxglove": 0.0}
+    keep it, the node refused it) or the ladder reached its cap. ``cpu``: filled as by ``_losses``;
+    ``subscribers``: those searched (the six-joint row has no Foxglove client)."""
+    best = dict.fromkeys(subscribers, 0.0)
     first_loss: dict[str, float] = {}
     lossy: set[str] = set()  # subscribers that lost samples in a run (not only a failed instrument)
     tried: list[str] = []
@@ -412,6 +417,7 @@ def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe
     return best, first_loss, tried, {who: who not in lossy for who in best}
 
 
+JOINTS = 6  # the node section's JointState row: joints of one topic, each a channel of one node
 NODE_LIMITS = DATA_DIR / "bench_node_limits.json"  # the last full run's figures: where the quick search starts
 SEARCH_RUNS = 10  # runs per subscriber at most in the seeded search (a seed 3 x off takes 9)
 
@@ -503,9 +509,10 @@ def stored_node_limits(path: Path = NODE_LIMITS) -> dict[str, Any]:
 
 
 def _store_node_limits(rows: list[dict], path: Path = NODE_LIMITS) -> str:
-    """Write each row's three figures to ``path`` for the quick search; a note saying so (or why not)."""
+    """Write each message row's three figures to ``path`` for the quick search (not the JointState
+    row's: the quick bench has none); a note saying so (or why not)."""
     limits = {str(r["batch"]): {"node": r["node_rate"], "bare": r["reference_rate"], "foxglove": r["foxglove_rate"]}
-              for r in rows if r.get("reference_rate")}
+              for r in rows if r.get("reference_rate") and not r.get("joints")}  # the quick search's seeds
     doc = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "limits": limits}
     try:
         path.write_text(json.dumps(doc, indent=1) + "\n")
@@ -523,36 +530,42 @@ def _range_cell(low: float | None, high: float | None) -> str:
 
 
 def _node_row(batch: int, best: dict[str, float], first_loss: dict[str, float], tried: list[str],
-              lower: dict[str, bool], cpu: dict) -> dict[str, Any]:
-    """The node section's row of one message type from a search's figures (``_zero_loss_limits``)."""
+              lower: dict[str, bool], cpu: dict, joints: int = 0) -> dict[str, Any]:
+    """The node section's row of one message type from a search's figures (``_zero_loss_limits``);
+    ``joints``: the row of one JointState topic read by that many channels (no Foxglove run)."""
     at_limit = {who: cpu.get((who, rate), {}) for who, rate in best.items() if who in ("node", "bare")}
     at_loss = {who: cpu.get((who, rate), {}) for who, rate in first_loss.items() if who in ("node", "bare")}
-    node, bare, foxglove = best["node"], best["bare"], best["foxglove"]
+    node, bare, foxglove = best["node"], best["bare"], best.get("foxglove")
     ratio = node / bare if bare else None
-    foxglove_ratio = foxglove / node if node else None
+    foxglove_ratio = foxglove / node if node and foxglove is not None else None
     # each true limit lies in [figure, first other rate); a lower bound's bracket is open above
     low = node / first_loss["bare"] if "bare" in first_loss and not lower["bare"] else None
     high = first_loss["node"] / bare if "node" in first_loss and not lower["node"] and bare else None
-    label = "Float64 (1 sample)" if batch == 1 else f"Float64MultiArray ({batch} samples)"
+    label = (f"JointState of {joints} joints, {joints} channels (1 sample each)" if joints else
+             "Float64 (1 sample)" if batch == 1 else f"Float64MultiArray ({batch} samples)")
     at_least = {who: ">= " if lower[who] else "" for who in best}
     return {"case": label, "batch": batch, "node": f"{at_least['node']}{node:g} ({node * batch:g})",
             "node_rate": node, "reference": f"{at_least['bare']}{bare:g}", "reference_rate": bare,
             "ratio": ratio, "ratio_range": [low, high], "range": _range_cell(low, high),
-            "foxglove": f"{foxglove:g} ({foxglove_ratio or 0:.2f})",
+            "foxglove": "-" if foxglove is None else f"{foxglove:g} ({foxglove_ratio or 0:.2f})",
             "foxglove_rate": foxglove, "foxglove_ratio": foxglove_ratio,
             "tried": "; ".join(tried), "ladder_top": lower["bare"], "lower_bound": lower,
             "first_other_rate": first_loss,
             "cpu": "; ".join(f"{who} {_cpu_cell(use)}" for who, use in at_limit.items()),
             "cpu_at_limit": at_limit, "cpu_at_first_loss": at_loss,
-            "goal": None if ratio is None or foxglove_ratio is None else ratio >= 0.9 and foxglove_ratio >= 0.9}
+            "joints": joints,
+            "goal": None if ratio is None or (foxglove_ratio is None and not joints) else
+            ratio >= 0.9 and (bool(joints) or foxglove_ratio >= 0.9)}
 
 
 def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float | None = None,
-                 limits_path: Path = NODE_LIMITS) -> Section:
+                 limits_path: Path = NODE_LIMITS, joint_rates: Sequence[float] = ()) -> Section:
     """Highest zero-loss message rate of the node vs a bare rclpy subscriber (``ros_rate_probe``),
     climbing each ladder until both have lost samples (or the publisher cannot keep the rate),
     and storing the figures in ``limits_path``; with ``step``, by the seeded search from the
-    figures stored there (``_seeded_limits``; ``rates[batch][-1]`` where there are none)."""
+    figures stored there (``_seeded_limits``; ``rates[batch][-1]`` where there are none).
+    ``joint_rates``: also the row of one JointState of JOINTS joints read by JOINTS channels of one
+    node against a bare subscriber of that topic (``ProbeSession.joints_probe``), by the ladder."""
     section = Section("node", f"2. Live node: highest rate with zero lost samples ({seconds:g} s per rate)", [
         ("case", "message"), ("node", "node: max msg/s (samples/s)"), ("reference", "bare rclpy: max msg/s"),
         ("ratio", "node / bare"), ("range", "node / bare if each limit is anywhere in its bracket"),
@@ -576,6 +589,13 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
             else:
                 best, first_loss, tried, lower = _zero_loss_limits(batch, ladder, seconds, session.probe, cpu)
         section.rows.append(_node_row(batch, best, first_loss, tried, lower, cpu))
+    if joint_rates:
+        cpu = {}
+        who = ("node", "bare")
+        with ProbeSession() as session:
+            probe = functools.partial(session.joints_probe, joints=JOINTS)
+            best, first_loss, tried, lower = _zero_loss_limits(1, joint_rates, seconds, probe, cpu, who)
+        section.rows.append(_node_row(1, best, first_loss, tried, lower, cpu, joints=JOINTS))
     if step:
         origin = (f"the full run of {stored['date']}" if stored.get("date") else
                   f"the plan's {', '.join(f'{r[-1]:g}' for r in rates.values())} msg/s (no figures stored)")
@@ -615,6 +635,14 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
                          "publisher's start until every sample was counted, per message received on both topics, "
                          "and in cores (CPU seconds / publishing time) beside the publisher's; the JSON also has "
                          "them at each one's first lossy rate (`cpu_at_first_loss`)")
+    if joint_rates:
+        section.notes.append(f"JointState row: one topic of {JOINTS} named joints (one message = one sample of each), "
+                             f"read by one node of {JOINTS} channels (`position[joint_k]` -> `velocity[joint_k]`, "
+                             "the topic subscribed and decoded once; window 4000, cls-markov, 4 solves/s each; "
+                             "received = the smallest count of any channel's inputs in /diagnostics) and by the "
+                             "bare subscriber of that topic, which builds every JointState; no Foxglove run (a "
+                             "node of several channels has no Foxglove server); the full bench only (a "
+                             "six-channel node takes 10-25 s to start: the row would add about 70 s to the quick one)")
     return section
 
 
@@ -1335,7 +1363,8 @@ def run_sections(plan: Plan, only: Sequence[str] = SECTION_KEYS, profile: bool =
     builders: dict[str, Callable[[], Section]] = {
         "ingest": lambda: ingest_section(plan.ingest_samples, plan.ingest_taus, plan.ingest_windows,
                                          plan.ingest_forgetting, plan.ingest_chunk, plan.repeats),
-        "node": lambda: node_section(plan.node_rates, plan.node_seconds, plan.node_step),
+        "node": lambda: node_section(plan.node_rates, plan.node_seconds, plan.node_step,
+                                     joint_rates=plan.node_joint_rates),
         "replay": lambda: replay_section(plan.replay_messages, plan.replay_repeats),
         "solve": lambda: solve_section(plan.solve_windows, plan.solve_repeats, plan.slow_solve_repeats),
         "peers": lambda: peer_section(plan.peer_frols, plan.repeats),

@@ -452,34 +452,43 @@ def joint_state_params(path, joints: int, rate: float) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def joint_state_run(session: ProbeSession, rate: float, seconds: float, joints: int) -> dict:
-    """One run of ``joints`` channels from one JointState topic at ``rate`` messages/s: the bare
-    subscriber's count of the topic's messages and the node's smallest per-channel count of
-    received samples (its /diagnostics, one status per channel); {bare, node, messages}."""
-    import tempfile
-    from pathlib import Path
-
-    from diagnostic_msgs.msg import DiagnosticArray
+def _joints_bare(session: ProbeSession, rate: float, seconds: float, joints: int) -> dict:
+    """The bare subscriber of the JointState topic of ``joints`` joints: the probe's row (``_bare``)."""
     from rclpy.qos import QoSProfile, qos_profile_sensor_data
     from rclpy.task import Future
 
     from ..ros.node_core import PARAMETERS
 
-    node, executor, env = session.node, session.executor, session.env
+    node, executor = session.node, session.executor
     never = Future()
     count = [0]
     qos = QoSProfile(depth=PARAMETERS["qos_depth"].default, reliability=qos_profile_sensor_data.reliability,
                      durability=qos_profile_sensor_data.durability)
     sub = node.create_subscription(type(_joint_state(joints)), JOINT_TOPIC,
                                    lambda m: count.__setitem__(0, count[0] + 1), qos)
-    publisher = _start_publisher(env, rate, seconds, 1, joints=joints)
+    publisher = _start_publisher(session.env, rate, seconds, 1, joints=joints)
     _start_when_subscribed(publisher, executor, lambda: sub.get_publisher_count() > 0)
+    cpu = time.process_time()
     while not _result_ready(publisher):
         executor.spin_until_future_complete(never, timeout_sec=0.05)
-    bare = _result(publisher)
-    _spin_until(executor, lambda: count[0] >= bare["messages"], SETTLE_SECONDS)
+    sent = _result(publisher)
+    _spin_until(executor, lambda: count[0] >= sent["messages"], SETTLE_SECONDS)
+    cpu = time.process_time() - cpu
     _reap(publisher)
     node.destroy_subscription(sub)
+    return {"subscriber": "bare rclpy (EventsExecutor)", "received": count[0], **sent, "subscriber_cpu_seconds": cpu}
+
+
+def _joints_node(session: ProbeSession, rate: float, seconds: float, joints: int) -> dict:
+    """A fresh node of ``joints`` channels over the JointState topic (``joint_state_params``): the
+    probe's row, ``received`` the smallest count of any channel's inputs (/diagnostics, one status
+    per channel), with the largest DDS-lost and queue-dropped counts and the node's CPU."""
+    import tempfile
+    from pathlib import Path
+
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    node, executor, env = session.node, session.executor, session.env
     statuses: dict[str, dict[str, str]] = {}
 
     def on_diagnostics(msg) -> None:
@@ -502,16 +511,18 @@ def joint_state_run(session: ProbeSession, rate: float, seconds: float, joints: 
             _spin_until(executor, lambda: len(statuses) == joints and all(
                 int(v.get("excitation_publishers", 0)) for v in statuses.values()), 2 * MATCH_TIMEOUT)
             _start_when_subscribed(publisher, executor, lambda: True)
+            cpu = process_cpu_seconds(ident.pid)
             _spin_until(executor, lambda: _result_ready(publisher), 120)
             sent = _result(publisher)
             _spin_until(executor, lambda: received() >= sent["messages"], SETTLE_SECONDS + 1.0)
+            end = process_cpu_seconds(ident.pid)
+            sent["subscriber_cpu_seconds"] = None if cpu is None or end is None else end - cpu
         finally:
             _reap(publisher)
             ident.terminate()
             ident.communicate(timeout=20)
             node.destroy_subscription(diagnostics)
-    return {"joints": joints, "rate_msgs_per_s": rate, "bare_messages": bare["messages"], "bare_received": count[0],
-            "node_messages": sent["messages"], "node_received": received(),
+    return {"subscriber": "hammer_ros node", "received": received(), **sent,
             **{f"node_{what}": max((int(v.get(f"response_{what}", 0)) for v in statuses.values()), default=0)
                for what in ("dds_lost", "queue_dropped")}}
 
@@ -565,6 +576,24 @@ class ProbeSession:
                 print(json.dumps(row), flush=True)
         return rows
 
+    def joints_probe(self, rates: list[float], batch: int = 1, seconds: float = 4.0,
+                     subscribers: tuple[str, ...] = ("bare", "node"), joints: int = 6) -> list[dict]:
+        """``probe``'s rows for one JointState topic of ``joints`` named joints (one message =
+        one sample per joint), read by the bare subscriber and by one node of ``joints`` channels
+        (``_joints_node``); ``batch`` must be 1."""
+        if batch != 1:
+            raise ValueError(f"joints_probe: batch {batch}: a JointState carries one sample per joint")
+        runs = {"bare": _joints_bare, "node": _joints_node}
+        rows = []
+        for rate in rates:
+            for who in (w for w in ("bare", "node") if w in subscribers):
+                row = runs[who](self, rate, seconds, joints)
+                row.update(rate_msgs_per_s=rate, batch=1, joints=joints, samples_per_s=rate,
+                           lost=row["messages"] - row["received"])
+                rows.append(row)
+                print(json.dumps(row), flush=True)
+        return rows
+
 
 def probe(rates: list[float], batch: int = 1, seconds: float = 4.0, foxglove: bool = False,
           subscribers: tuple[str, ...] = ("bare", "node")) -> list[dict]:
@@ -591,8 +620,7 @@ def main(argv: list[str] | None = None) -> int:
         return _publish(rates[0], args.seconds, args.batch, args.plant, args.joints)
     if args.joints:
         with ProbeSession() as session:
-            for rate in rates:
-                print(json.dumps(joint_state_run(session, rate, args.seconds, args.joints)), flush=True)
+            session.joints_probe(rates, seconds=args.seconds, joints=args.joints)
         return 0
     probe(rates, args.batch, args.seconds, args.foxglove)
     return 0
