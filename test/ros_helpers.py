@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -15,6 +16,14 @@ from pathlib import Path
 
 from hammer_ros.tools.demo import ros_arguments
 
+
+def free_port() -> int:
+    """A TCP port of 127.0.0.1 that nothing listens on now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+RESEND = 5.0  # s without a response before an idempotent request is sent again
 WAIT = 30.0  # s: generous bound for anything that normally takes < 2 s on a loaded 2-core machine
 STOP_TIMEOUT = 10.0
 
@@ -103,8 +112,20 @@ class Listener:
         raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
     def wait_future(self, future, timeout: float = WAIT, what: str = "a service response"):
-        self.wait_for(future.done, timeout, what)
-        return future.result()
+        """Spin until ``future`` is done and return its result. Given a callable making the future
+        (an idempotent request), resend it every ``RESEND`` s without a response: Fast DDS drops a
+        response whose reader it has not matched yet ("failed to send response (timeout)")."""
+        request = future if callable(future) else None
+        deadline = time.monotonic() + timeout
+        while True:
+            pending = request() if request else future
+            left = deadline - time.monotonic()
+            try:
+                self.wait_for(pending.done, min(left, RESEND) if request else left, what)
+                return pending.result()
+            except AssertionError:
+                if not request or time.monotonic() >= deadline:
+                    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}") from None
 
     def close(self) -> None:
         self.executor.shutdown()

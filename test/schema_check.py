@@ -1,7 +1,8 @@
 """A checker of JSON messages against the dashboard's JSON schemas (the subset of JSON Schema
 that ``hammer_ros.ros.dashboard`` uses: type, properties, additionalProperties, items), and of
 Foxglove message paths against a schema. Strict: a key that the schema does not declare is a
-mismatch, so a new key in a message fails until its schema declares it."""
+mismatch, so a new key in a message fails until its schema declares it. And the message paths
+of a Foxglove layout."""
 
 from __future__ import annotations
 
@@ -56,3 +57,17 @@ def path_in_schema(schema: dict[str, Any], path: str) -> bool:
                 return False
             node = item
     return True
+
+
+def layout_paths(layout: dict) -> list[str]:
+    """Every message path a Foxglove layout's panels read."""
+    paths = []
+    for config in layout["configById"].values():
+        paths += [p["value"] for p in config.get("paths", [])] + [config.get("xAxisPath", {}).get("value")]
+        paths += [config.get("topicPath"), config.get("topicToRender")]
+    return [p for p in paths if p]
+
+
+def layout_topic(path: str) -> str:
+    """The topic of a Foxglove message path (``/a/b/model.poles[:].re`` -> ``/a/b/model``)."""
+    return re.match(r"^/[\w/]+?(?=[.{\[]|$)", path).group(0)

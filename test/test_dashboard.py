@@ -5,41 +5,75 @@ every path of the shipped Foxglove layout exists in the schemas."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
-from schema_check import mismatches, path_in_schema
+from schema_check import layout_paths, layout_topic, mismatches, path_in_schema
 
 from hammer_ros.identification.closed_loop import random_loop_pair
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic
+from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic, foxglove_layout
 from hammer_ros.ros.outputs import diagnosis_message, diagnostics_message, result_messages, stale_model_message
 from hammer_ros.streaming.config import EngineConfig
 from hammer_ros.streaming.engine import StreamingEngine
 from hammer_ros.streaming.solver_process import diagnose_window
+from hammer_ros.tools.foxglove_layout import main as foxglove_layout_tool
 
 REPO = Path(__file__).resolve().parents[1]
 LAYOUT = REPO / "hammer_ros" / "dashboard" / "foxglove_layout.json"
 
 
-def layout_paths() -> list[str]:
-    layout = json.loads(LAYOUT.read_text())
-    paths = []
-    for config in layout["configById"].values():
-        paths += [p["value"] for p in config.get("paths", [])] + [config.get("xAxisPath", {}).get("value")]
-        paths += [config.get("topicPath"), config.get("topicToRender")]
-    return [p for p in paths if p]
+def _declared(paths: list[str], node_name: str) -> None:
+    for path in paths:
+        topic = layout_topic(path)
+        name = topic.rsplit("/", 1)[1]
+        assert topic == dashboard_topic(name, node_name) and name in CHANNELS, path
+        assert path_in_schema(CHANNELS[name][1], path[len(topic):]), path
+
+
+def _leaves(tree) -> list[str]:
+    return [tree] if isinstance(tree, str) else _leaves(tree["first"]) + _leaves(tree["second"])
 
 
 def test_every_layout_path_is_declared_by_its_channel_schema():
-    paths = layout_paths()
+    paths = layout_paths(json.loads(LAYOUT.read_text()))
     assert "/hammer_ros/dashboard/model.markov[:]" in paths and len(paths) > 20
-    for path in paths:
-        topic = re.match(r"^/[\w/]+?(?=[.{\[]|$)", path).group(0)
-        name = topic.rsplit("/", 1)[1]
-        assert topic == dashboard_topic(name) and name in CHANNELS, path
-        assert path_in_schema(CHANNELS[name][1], path[len(topic):]), path
+    _declared(paths, "hammer_ros")
+    assert foxglove_layout() == json.loads(LAYOUT.read_text())  # the shipped one, for a node named hammer_ros
+
+
+def test_a_layout_of_several_channels_has_one_tab_of_every_panel_per_channel():
+    shipped = json.loads(LAYOUT.read_text())
+    one = foxglove_layout("arm", ["wrist"])  # one channel: the shipped layout on the node's topics
+    assert one["layout"] == shipped["layout"] and len(layout_paths(one)) == len(layout_paths(shipped))
+    _declared(layout_paths(one), "arm")
+    layout = foxglove_layout("arm", ["shoulder", "elbow"])
+    assert layout["layout"] == "Tab!channels"
+    tabs = layout["configById"]["Tab!channels"]["tabs"]
+    assert [tab["title"] for tab in tabs] == ["shoulder", "elbow"]
+    for tab in tabs:
+        panels = _leaves(tab["layout"])
+        assert len(panels) == len(_leaves(shipped["layout"])) and all(p in layout["configById"] for p in panels)
+        paths = layout_paths({"configById": {p: layout["configById"][p] for p in panels}})
+        assert len(paths) == len(layout_paths(shipped))
+        _declared(paths, f"arm/{tab['title']}")  # each tab reads its own channel's topics only
+    assert len(layout["configById"]) == 2 * len(shipped["configById"]) + 1  # panel ids unique
+
+
+def test_the_layout_tool_reads_a_params_file_and_refuses_a_bad_one(tmp_path, capsys):
+    params = tmp_path / "arm.yaml"
+    params.write_text("hammer_ros:\n  ros__parameters:\n    channels: [left, right]\n"
+                      "    left: {excitation_topic: /cmd, excitation_field: 'data[0]', response_topic: /js,\n"
+                      "           response_type: sensor_msgs/msg/JointState, response_field: 'velocity[l]'}\n"
+                      "    right: {excitation_topic: /cmd, excitation_field: 'data[1]', response_topic: /js,\n"
+                      "            response_type: sensor_msgs/msg/JointState, response_field: 'velocity[r]'}\n")
+    out = tmp_path / "layout.json"
+    assert foxglove_layout_tool(["--config", str(params), "--node", "arm", "-o", str(out)]) == 0
+    assert json.loads(out.read_text()) == foxglove_layout("arm", ["left", "right"])
+    params.write_text(params.read_text().replace("[left, right]", "[left, middle]"))
+    assert foxglove_layout_tool(["--config", str(params)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "middle" in err[0] and str(params) in err[0], err
 
 
 def test_the_checker_finds_an_undeclared_key_and_a_wrong_type():

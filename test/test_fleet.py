@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_helpers import free_port
 
 from hammer_ros.fleet.sample_fleet import sample_joints, write_sample_fleet
 from hammer_ros.fleet.table import QUANTITIES, read_rows
@@ -38,12 +39,6 @@ def child_env() -> dict[str, str]:
     env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
     env.update(OPENBLAS_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     return env
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def wait_for(predicate, timeout: float, what: str) -> None:

@@ -35,7 +35,7 @@ class Lifecycle:
     def state(self) -> str:
         from lifecycle_msgs.srv import GetState
 
-        return self.listener.wait_future(self.get.call_async(GetState.Request())).current_state.label
+        return self.listener.wait_future(lambda: self.get.call_async(GetState.Request())).current_state.label
 
     def transition(self, name: str) -> bool:
         from lifecycle_msgs.msg import Transition

@@ -80,7 +80,7 @@ def _get(listener: Listener, *names):
 
     client = AsyncParameterClient(listener.node, "hammer_ros")
     listener.wait_for(lambda: client.services_are_ready(), what="the node's parameter services")
-    values = listener.wait_future(client.get_parameters(list(names))).values
+    values = listener.wait_future(lambda: client.get_parameters(list(names))).values
     return [parameter_value_to_python(v) for v in values]
 
 

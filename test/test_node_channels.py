@@ -3,7 +3,10 @@ sensor_msgs/JointState topic (joints by name) and one std_msgs/Float64MultiArray
 fed in real time by this process from three known Hammerstein plants; each channel's
 ~/NAME/model converges to its own plant's poles, /diagnostics carries one status per channel
 (a message without one joint counted by that joint's channel alone), and ~/solve answers for
-every channel. A bad channels list exits 2 with one line."""
+every channel; the node's one Foxglove server serves every channel's dashboard under
+/hammer_ros/NAME/dashboard/ (the per-channel layout reads only channels it advertises), and its
+one output_mcap records every channel's results under /hammer_ros/NAME/ (read with rosbags). A
+bad channels list exits 2 with one line."""
 
 from __future__ import annotations
 
@@ -15,10 +18,13 @@ import time
 
 import numpy as np
 import pytest
-from ros_helpers import Listener
+from foxglove_client import FoxgloveClient
+from ros_helpers import Listener, free_port
+from schema_check import layout_paths, layout_topic, mismatches
 
 from hammer_ros.identification.linear import LinearModel, root_rss_error
 from hammer_ros.identification.simulate import simulate_hammerstein
+from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic, foxglove_layout
 
 pytestmark = pytest.mark.ros
 
@@ -73,12 +79,14 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
     commands = {name: 0.5 * rng.standard_normal(n) for name in JOINTS}
     velocity = {name: simulate_hammerstein(commands[name], lambda u: u + 0.5 * u**3, PLANTS[name])
                 + 0.002 * rng.standard_normal(n) for name in JOINTS}
-    params = tmp_path / "arm.yaml"
-    params.write_text(PARAMS)
+    params, recorded, port = tmp_path / "arm.yaml", tmp_path / "results.mcap", free_port()
+    params.write_text(PARAMS + f"    foxglove_port: {port}\n    output_mcap: {recorded}\n")
     node = _node(ros_env, params, tmp_path / "node.log")
     listener = Listener(ros_env)
+    fox = None
     try:
         models = {name: listener.subscribe_json(f"/hammer_ros/{name}/model") for name in JOINTS}
+        served = {name: dashboard_topic("model", f"hammer_ros/{name}") for name in JOINTS}
         arrays: list[dict[str, dict[str, str]]] = []  # per /diagnostics: status name -> values
         listener.node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: arrays.append(
             {s.name: {kv.key: kv.value for kv in s.values} for s in m.status}), 10)
@@ -87,6 +95,7 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
         listener.wait_for(lambda: cmd.get_subscription_count() and joints.get_subscription_count(),
                           what="the node's subscriptions")
         assert joints.get_subscription_count() == 1  # one subscription for the three channels
+        fox = FoxgloveClient(port, tuple(served.values()))  # (the server is up before the subscriptions)
         names = list(JOINTS.values())[::-1]  # not the channels' order: looked up by name
         joint_channel = {joint: name for name, joint in JOINTS.items()}
         start = time.monotonic()
@@ -108,11 +117,25 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
         for name in JOINTS:
             print(f"{name}: pole RSS error {_pole_error(name, models[name][-1]):.4f} after "
                   f"{models[name][-1]['samples']} samples")
+        assert fox.error is None and set(fox.channels) == {
+            dashboard_topic(what, f"hammer_ros/{name}") for name in JOINTS for what in CHANNELS}
+        for name, topic in served.items():  # the channel's own dashboard model: its ~/NAME/model of the same solve
+            def same_solve(name=name, topic=topic):
+                ros = {m["stamp"]: m for m in models[name]}
+                return [(m, ros[m["stamp"]]) for m in fox.messages[topic] if m["stamp"] in ros]
+
+            dashboard_model, ros_model = listener.wait_for(same_solve, what=f"{topic} of a ~/{name}/model solve")[-1]
+            assert {k: v for k, v in dashboard_model.items() if k != "timestamp"} == ros_model
+            assert mismatches(CHANNELS["model"][1], dashboard_model) == []
+        layout = foxglove_layout("hammer_ros", list(JOINTS))
+        assert [tab["title"] for tab in layout["configById"]["Tab!channels"]["tabs"]] == list(JOINTS)
+        layout_topics = {layout_topic(path) for path in layout_paths(layout)}
+        assert layout_topics <= set(fox.channels) and len(layout_topics) == len(JOINTS) * len(CHANNELS)
         expected = [f"hammer_ros/{name}: identification" for name in JOINTS]
         listener.wait_for(lambda: arrays and list(arrays[-1]) == expected, what="one /diagnostics status per channel")
         client = listener.node.create_client(Trigger, "/hammer_ros/solve")
         listener.wait_for(client.service_is_ready, what="~/solve")
-        answer = listener.wait_future(client.call_async(Trigger.Request()))
+        answer = listener.wait_future(lambda: client.call_async(Trigger.Request()))
         assert answer.success, answer.message
         solved = json.loads(answer.message)
         assert set(solved) == set(JOINTS)
@@ -129,23 +152,37 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
                           what=f"{MISSING} field errors of the elbow channel alone")
         assert node.poll() is None
     finally:
+        if fox is not None:
+            fox.close()
         listener.close()
         node.send_signal(signal.SIGINT)
         code = node.wait(timeout=20)
     log = (tmp_path / "node.log").read_text()
     assert code == 0, log[-3000:]
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([recorded]) as reader:  # an independent reader: every channel's results under its name
+        written = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    for name in JOINTS:
+        final = [json.loads(m.data) for topic, m in written if topic == f"/hammer_ros/{name}/model"]
+        assert len(final) >= 2 and _pole_error(name, final[-1]) < POLE_TOLERANCE, name
+        assert any(topic == f"/hammer_ros/{name}/poles" for topic, _ in written)
+    statuses = {s.name for topic, m in written if topic == "/diagnostics" for s in m.status}
+    assert statuses == {f"hammer_ros/{name}: identification" for name in JOINTS}
+    assert not any(topic.startswith("/hammer_ros/model") for topic, _ in written)  # nothing channel-less
 
 
 @pytest.mark.parametrize("change, needle", [
     ("channels: [shoulder, elbow, shoulder]", "channels: duplicate channel 'shoulder'"),
     ("channels: [shoulder, 2nd]", "channels[1]: name '2nd' must be a name like"),
-    ("foxglove_port: 8765", "channel 'shoulder': foxglove_port: not supported with several channels"),
+    ("order: 1, foxglove_port: 8765}", "channel 'wrist': foxglove_port: one for the node and every channel"),
 ])
 def test_bad_channels_exit_2_with_one_line(ros_env, tmp_path, change, needle):
     params = tmp_path / "bad.yaml"
-    text = PARAMS.replace("    channels: [shoulder, elbow, wrist]\n", f"    {change}\n")
-    if change.startswith("foxglove"):
-        text = PARAMS + f"    {change}\n"
+    if change.startswith("order"):  # the node's Foxglove server set for one channel
+        text = PARAMS.replace("order: 1}", change)
+    else:
+        text = PARAMS.replace("    channels: [shoulder, elbow, wrist]\n", f"    {change}\n")
     params.write_text(text)
     done = subprocess.run([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file", str(params)],
                           env=ros_env, capture_output=True, text=True, timeout=60)
@@ -166,7 +203,8 @@ def test_one_channel_is_the_single_channel_node_of_its_parameters(ros_env, tmp_p
     try:
         client = AsyncParameterClient(listener.node, "hammer_ros")
         listener.wait_for(client.services_are_ready, what="the node's parameter services")
-        values = listener.wait_future(client.get_parameters(["excitation_field", "response_field", "order"])).values
+        names = ["excitation_field", "response_field", "order"]
+        values = listener.wait_future(lambda: client.get_parameters(names)).values
         assert [parameter_value_to_python(v) for v in values] == ["data[2]", "velocity[wrist_1_joint]", 1]
         topics = listener.wait_for(lambda: {t for t, _ in listener.node.get_topic_names_and_types()} >=
                                    {"/hammer_ros/model", "/hammer_ros/poles"} and

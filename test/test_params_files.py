@@ -6,24 +6,17 @@ from __future__ import annotations
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 
 import pytest
 import yaml
 from conftest import REPO
-from ros_helpers import Listener
+from ros_helpers import Listener, free_port
 
 pytestmark = pytest.mark.ros
 
 SETUPS = ("float64_example.yaml", "float64_cubic_g1.yaml", "joint_state_saturation.yaml")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.parametrize("name", SETUPS)
@@ -43,7 +36,7 @@ def test_params_file_starts_the_node_with_its_parameters(ros_env, tmp_path, name
     try:
         client = AsyncParameterClient(listener.node, "hammer_ros")
         listener.wait_for(client.services_are_ready, what="the node's parameter services")
-        values = listener.wait_future(client.get_parameters(list(params))).values
+        values = listener.wait_future(lambda: client.get_parameters(list(params))).values
         assert dict(zip(params, [parameter_value_to_python(v) for v in values])) == {
             **params, "foxglove_port": port}
         diagnostics = listener.subscribe_diagnostics()

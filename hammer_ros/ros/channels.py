@@ -13,7 +13,11 @@ channel has a raw extractor, else the message rclpy built once) for every channe
 channel's ingest thread takes its own field out. /diagnostics
 carries one array with one status per channel (``NODE/NAME: identification``, the newest of
 each); ``~/reset``, ``~/solve`` and ``~/diagnose`` act on every channel. The parameters of a
-node with several channels are fixed at startup; it has no Foxglove server and no output_mcap.
+node with several channels are fixed at startup. ``foxglove_port``, ``foxglove_host`` and
+``output_mcap`` are the node's (the params file's top level): one Foxglove server carries every
+channel's dashboard channels under ``/<node>/NAME/dashboard/`` (``dashboard.foxglove_layout`` has
+one tab per channel), and one output_mcap file every channel's results under ``/<node>/NAME/...``,
+as ``replay --out`` / ``--dashboard-out`` write them.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from __future__ import annotations
 import json
 import threading
 from dataclasses import fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -32,23 +36,29 @@ prepare_ros_environment()
 from rclpy.lifecycle import LifecycleNode  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
-from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
+from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, ResultWriter, config_channels  # noqa: E402
 from ..streaming.config import EngineConfig  # noqa: E402
 from .cdr import TopicDecoder, topic_decoder  # noqa: E402
 from .node_core import (  # noqa: E402
     PARAMETERS,
     IdentificationCore,
+    _coerce,
     _drained,
     _Input,
     _normal_type,
     _queueing_callback,
     built_reader,
+    close_output_mcap,
     message_class,
 )
 from .outputs import message_class as output_message_class  # noqa: E402
 
+if TYPE_CHECKING:
+    from .foxglove_server import DashboardServer
+
 REPLAY_KEYS = {f.name for f in fields(EngineConfig)} | set(TOPIC_KEYS) | set(OTHER_KEYS)
 SOURCE = "params file"
+NODE_WIDE = ("foxglove_port", "foxglove_host", "output_mcap")  # one for the node, never per channel
 
 
 def file_channels(node) -> list[Channel]:
@@ -73,6 +83,27 @@ def channel_values(node, channel: Channel) -> dict[str, Any]:
     section = {k.split(".", 1)[1]: v.value for k, v in node._parameter_overrides.items()
                if k.startswith(f"{channel.name}.")}
     return {k: v for k, v in {**channel.params, **section}.items() if k in PARAMETERS}
+
+
+class _ServerPort:
+    """What a channel sends its dashboard channels to: the node's Foxglove server, as its source
+    NAME (``/<node>/NAME/dashboard/...``); stopped by the ``ChannelSet``, not by the channel."""
+
+    def __init__(self, server: DashboardServer, name: str) -> None:
+        self.server, self.name = server, name
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def publish(self, items: list[tuple[str, dict]], stamp_ns: int) -> None:
+        self.server.publish(items, stamp_ns, self.name)
+
+    def diagnostics(self) -> dict[str, int]:
+        return self.server.diagnostics()
+
+    def stop(self) -> None:
+        pass
 
 
 class _DiagnosticsPort:
@@ -126,14 +157,26 @@ class ChannelCore(IdentificationCore):
         return self._host.get_logger().get_child(self.channel.name)
 
     def configure(self) -> None:
+        """Configure the channel; the node's Foxglove server and output_mcap (``NODE_WIDE``) are
+        the ``ChannelSet``'s, attached by ``attach``."""
         where = f"{SOURCE}: channel {self.channel.name!r}"
-        for name in ("foxglove_port", "output_mcap"):
-            if self._values[name]:
-                raise UsageError(f"{where}: {name}: not supported with several channels (one channel or none only)")
+        for name in NODE_WIDE:
+            if self._values[name] != self._host._declared_value(name):
+                raise UsageError(f"{where}: {name}: one for the node and every channel: set it at the top level")
+        self._values |= {"foxglove_port": 0, "output_mcap": ""}
         try:
             super().configure()
         except UsageError as exc:
             raise UsageError(f"{where}: {exc}") from None
+
+    def attach(self, server: DashboardServer | None, writer: ResultWriter | None, writer_lock) -> None:
+        """Send the dashboard channels to the node's server (under ``/<node>/NAME/dashboard/``)
+        and record the results in the node's output_mcap (under ``/<node>/NAME/``)."""
+        self.server = None if server is None else _ServerPort(server, self.channel.name)
+        self._writer, self._writer_lock = writer, writer_lock
+
+    def _close_writer(self) -> None:
+        self._writer = None  # the node's: ``ChannelSet.close`` finishes it after every channel's final solve
 
     def _declared_value(self, name: str) -> Any:
         return self._values[name]
@@ -209,15 +252,37 @@ class ChannelSet:
                                           "/diagnostics", 10), [c.name for c in channels])
         self.cores = [ChannelCore(host, channel, self.merger) for channel in channels]
         self.topics: list[_Input] = []  # the shared subscriptions, one per topic
+        self.server: DashboardServer | None = None
+        self.writer: ResultWriter | None = None
+        self.writer_lock = threading.Lock()
         try:
             for core in self.cores:
                 core.configure()
+            self._start_outputs()
         except BaseException:
             self.cleanup()
             raise
+        serving = f"; Foxglove on ws://{self.server_host}:{self.server.port}" if self.server else ""
         host.get_logger().info(f"identifying {len(self.cores)} channels: " + ", ".join(
             f"{c.channel.name} ({c.channel.excitation} -> {c.channel.response}, {c.values['method']})"
-            for c in self.cores))
+            for c in self.cores) + serving)
+
+    def _start_outputs(self) -> None:
+        """The node's Foxglove server (every channel's dashboard channels) and output_mcap file,
+        from the params file's top level, attached to every channel."""
+        values = {name: _coerce(name, self.host._declared_value(name)) for name in NODE_WIDE}
+        self.server_host = values["foxglove_host"]
+        if values["foxglove_port"]:
+            from .foxglove_server import DashboardServer  # the SDK only when asked for
+
+            self.server = DashboardServer(values["foxglove_host"], values["foxglove_port"], self.host.get_name(),
+                                          self.host._warn_throttled, parameters=self.host,
+                                          services=self.host.trigger_services.handlers,
+                                          sources=tuple(core.channel.name for core in self.cores))
+        if values["output_mcap"]:
+            self.writer = ResultWriter(values["output_mcap"], "output_mcap")
+        for core in self.cores:
+            core.attach(self.server, self.writer, self.writer_lock)
 
     def activate(self) -> None:
         """Start every channel, then subscribe each topic once for all the channels reading it."""
@@ -260,12 +325,19 @@ class ChannelSet:
     def cleanup(self) -> None:
         for core in self.cores:
             core.cleanup()
+        if self.server is not None:
+            self.server.stop()
+            self.server = None
+        with self.writer_lock:
+            close_output_mcap(self.writer)
+            self.writer = None
         if self.merger.publisher is not None:
             self.host._destroy_output_publisher(self.merger.publisher)
             self.merger.publisher = None
 
     def close(self) -> None:
-        """Stop ingesting, solve every channel once more (its final model on stderr), release."""
+        """Stop ingesting, solve every channel once more (its final model on stderr; its final
+        results in output_mcap, then finished), release."""
         if self.host.active:
             self.deactivate(publish=False)
         for core in self.cores:

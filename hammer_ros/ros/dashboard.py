@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
+from importlib.resources import files
 from typing import Any
 
 from ..io.bags import JsonWriter, ResultWriter, node_topic
@@ -111,6 +113,53 @@ _CIRCLE = [{"x": math.cos(2 * math.pi * k / 64), "y": math.sin(2 * math.pi * k /
 def dashboard_topic(channel: str, node_name: str = "hammer_ros") -> str:
     """'model' -> '/hammer_ros/dashboard/model'."""
     return f"/{node_name}/dashboard/{channel}"
+
+
+def channel_node(node_name: str, channel: str = "") -> str:
+    """The node-name part of a channel's topics: ``NODE`` for a node of one channel, ``NODE/CHANNEL``
+    for a channel of a node (or replay) with several: ``/NODE/CHANNEL/model``,
+    ``/NODE/CHANNEL/dashboard/model``."""
+    return f"{node_name}/{channel}" if channel else node_name
+
+
+SHIPPED_NODE = "hammer_ros"  # the node name of the shipped layout's topics
+
+
+def shipped_layout() -> dict[str, Any]:
+    """The shipped Foxglove layout (``hammer_ros/dashboard/foxglove_layout.json``: one channel of
+    a node named ``hammer_ros``)."""
+    return json.loads(files("hammer_ros").joinpath("dashboard", "foxglove_layout.json").read_text())
+
+
+def _renamed_tree(tree: Any, suffix: str) -> Any:
+    """A mosaic tree (panel ids at its leaves) with every panel id suffixed."""
+    if isinstance(tree, str):
+        return tree + suffix
+    return {k: _renamed_tree(v, suffix) if k in ("first", "second") else v for k, v in tree.items()}
+
+
+def foxglove_layout(node_name: str = SHIPPED_NODE, channels: Sequence[str] = ()) -> dict[str, Any]:
+    """The Foxglove layout of ``node_name``'s dashboard channels: the shipped layout with its
+    topics ``/hammer_ros/dashboard/...`` moved to ``/<node>/dashboard/...``; with several
+    ``channels``, a Tab panel with one tab per channel (titled by its name), each the shipped
+    layout on ``/<node>/<channel>/dashboard/...`` (panel ids suffixed ``-<channel>``, unique)."""
+    layout = shipped_layout()
+    shipped = dashboard_topic("", SHIPPED_NODE)
+
+    def moved(configs: dict[str, Any], channel: str, suffix: str) -> dict[str, Any]:
+        text = json.dumps(configs).replace(json.dumps(shipped)[:-1], json.dumps(
+            dashboard_topic("", channel_node(node_name, channel)))[:-1])
+        return {panel + suffix: config for panel, config in json.loads(text).items()}
+
+    if len(channels) <= 1:
+        return {**layout, "configById": moved(layout["configById"], "", "")}
+    configs: dict[str, Any] = {}
+    tabs = []
+    for channel in channels:
+        configs |= moved(layout["configById"], channel, f"-{channel}")
+        tabs.append({"title": channel, "layout": _renamed_tree(layout["layout"], f"-{channel}")})
+    configs["Tab!channels"] = {"activeTabIdx": 0, "tabs": tabs}
+    return {**layout, "configById": configs, "layout": "Tab!channels"}
 
 
 def _time(stamp_ns: int) -> dict[str, int]:

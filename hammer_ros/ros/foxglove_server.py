@@ -33,7 +33,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..errors import UsageError
-from .dashboard import CHANNELS, dashboard_topic
+from .dashboard import CHANNELS, channel_node, dashboard_topic
 from .outputs import checked_ns
 
 QUEUE = 256  # payloads waiting for the publishing thread; beyond, the oldest are dropped (counted)
@@ -49,6 +49,9 @@ class NodeParameters(Protocol):
     def parameter_values(self) -> dict[str, Any]: ...
 
     def set_parameter_value(self, name: str, value: Any) -> tuple[bool, str]: ...
+
+
+Key = tuple[str, str]  # (source: the node's channel or "", dashboard channel name): one channel of the server
 
 
 def client_sink(client_id: int) -> int:
@@ -83,11 +86,14 @@ class _LogCounter(logging.Handler):
 
 class DashboardServer:
     """The Foxglove WebSocket server with one JSON channel per dashboard channel, the node's
-    ``parameters`` and its Trigger ``services`` (name -> handler returning (success, message))."""
+    ``parameters`` and its Trigger ``services`` (name -> handler returning (success, message)).
+    ``sources``: the node's channels (``channels.py``), each with its dashboard channels under
+    ``/<node>/<source>/dashboard/``; by default the one source ``""`` (``/<node>/dashboard/``)."""
 
     def __init__(self, host: str, port: int, node_name: str, warn: Callable[[str], None],
                  parameters: NodeParameters | None = None,
-                 services: dict[str, Callable[[], tuple[bool, str]]] | None = None) -> None:
+                 services: dict[str, Callable[[], tuple[bool, str]]] | None = None,
+                 sources: tuple[str, ...] = ("",)) -> None:
         import foxglove  # imported here: only a node with foxglove_port > 0 needs the SDK
         from foxglove.websocket import Capability
 
@@ -104,13 +110,15 @@ class DashboardServer:
         logger.propagate = False  # counted and reported by the node, not printed per frame
         logger.addHandler(self._log)
         self._context = foxglove.Context()
-        self._channels = {}
-        for name, (schema_name, schema) in CHANNELS.items():
-            schema_bytes = json.dumps(schema).encode()
-            self._channels[name] = foxglove.Channel(
-                dashboard_topic(name, node_name), message_encoding="json", context=self._context,
-                schema=foxglove.Schema(name=schema_name, encoding="jsonschema", data=schema_bytes))
-        self._by_id = {channel.id(): name for name, channel in self._channels.items()}
+        self._channels = {}  # (source, name) -> its channel
+        for source in sources:
+            for name, (schema_name, schema) in CHANNELS.items():
+                schema_bytes = json.dumps(schema).encode()
+                self._channels[(source, name)] = foxglove.Channel(
+                    dashboard_topic(name, channel_node(node_name, source)), message_encoding="json",
+                    context=self._context,
+                    schema=foxglove.Schema(name=schema_name, encoding="jsonschema", data=schema_bytes))
+        self._by_id = {channel.id(): key for key, channel in self._channels.items()}
         capabilities = ([Capability.Parameters] if parameters is not None else []) + (
             [Capability.Services] if services else [])
         try:
@@ -121,12 +129,12 @@ class DashboardServer:
         except Exception as exc:  # e.g. the port is taken, or the host is not an address of this machine
             logger.removeHandler(self._log)
             raise UsageError(f"foxglove_port: cannot listen on {host}:{port} ({exc})") from None
-        self._queue: deque[tuple[str, dict, int]] = deque()
+        self._queue: deque[tuple[Key, dict, int]] = deque()
         self._changed_parameters: dict[str, Any] = {}  # to send to the parameter subscribers
-        self._latest: dict[str, tuple[dict, int]] = {}
+        self._latest: dict[Key, tuple[dict, int]] = {}
         # (client id, channel) -> when it subscribed: send it the channel's latest message, unless broadcast since
-        self._resend: dict[tuple[int, str], float] = {}
-        self._broadcast: dict[str, float] = {}  # channel -> when its latest message went to every subscriber
+        self._resend: dict[tuple[int, Key], float] = {}
+        self._broadcast: dict[Key, float] = {}  # channel -> when its latest message went to every subscriber
         self._last_resend: dict[int, float] = {}  # client id -> when it was last sent latest messages
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -155,15 +163,15 @@ class DashboardServer:
             "std_srvs/srv/Trigger", request=message_schema(TRIGGER_REQUEST),
             response=message_schema(TRIGGER_RESPONSE)), handler=call)
 
-    def publish(self, items: list[tuple[str, dict]], stamp_ns: int) -> None:
-        """Queue (channel, JSON message) pairs stamped ``stamp_ns``; returns at once."""
+    def publish(self, items: list[tuple[str, dict]], stamp_ns: int, source: str = "") -> None:
+        """Queue (channel, JSON message) pairs of ``source`` stamped ``stamp_ns``; returns at once."""
         log_time = checked_ns(stamp_ns)
         with self._lock:
             for name, message in items:
                 if len(self._queue) >= QUEUE:
                     self._queue.popleft()
                     self.counts["foxglove_queue_dropped"] += 1
-                self._queue.append((name, message, log_time))
+                self._queue.append(((source, name), message, log_time))
         self._wake.set()
 
     def parameters_changed(self, values: dict[str, Any]) -> None:
@@ -231,14 +239,14 @@ class DashboardServer:
                 if name in self._latest and self._broadcast[name] < subscribed:
                     self._send(name, *self._latest[name], sink=client_sink(client_id))
 
-    def _send(self, name: str, message: dict, log_time: int, sink: int | None = None) -> None:
+    def _send(self, name: Key, message: dict, log_time: int, sink: int | None = None) -> None:
         try:
             # bytes: the SDK's Channel.log drops sink_id for a dict (0.30.3)
             self._channels[name].log(json.dumps(message, allow_nan=False).encode(), log_time=log_time, sink_id=sink)
             self.counts["foxglove_sent" if sink is None else "foxglove_resent"] += 1
         except Exception as exc:  # (e.g. a value json cannot encode) one message lost, never the node
             self.counts["foxglove_client_errors"] += 1
-            self.warn(f"foxglove channel {name}: {type(exc).__name__}: {exc}")
+            self.warn(f"foxglove channel {self._channels[name].topic()}: {type(exc).__name__}: {exc}")
 
     def stop(self) -> None:
         """Stop the publishing thread and the server (clients are disconnected)."""

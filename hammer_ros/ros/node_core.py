@@ -358,6 +358,17 @@ def _drained(queue: deque) -> list:
     return [queue.popleft() for _ in range(len(queue))]
 
 
+def close_output_mcap(writer: ResultWriter | None) -> None:
+    """Finish an output_mcap file, its message count (or why it failed) on stderr."""
+    if writer is None:
+        return
+    try:
+        writer.close()
+        print(f"hammer_ros_node: {writer.count} messages in {writer.path}", file=sys.stderr)
+    except OSError as exc:  # e.g. the disk is full
+        print(f"hammer_ros_node: error: output_mcap {writer.path}: {exc.strerror or exc}", file=sys.stderr)
+
+
 class IdentificationCore:
     """The identification node's implementation, shared by the unmanaged ``IdentificationNode``
     and the lifecycle ``managed_node.ManagedIdentificationNode`` (a mixin of an rclpy Node):
@@ -544,7 +555,8 @@ class IdentificationCore:
         return outcome
 
     def _status_name(self) -> str:
-        """The name of the node's status on /diagnostics (before ': identification')."""
+        """The name of the node's status on /diagnostics (before ': identification'), and the
+        node-name part of the topics output_mcap records (``/NAME/model``, ...)."""
         return self.get_name()
 
     def _now(self) -> int:
@@ -904,7 +916,7 @@ class IdentificationCore:
         server = self.server
         with self._writer_lock:
             if self._writer is not None:
-                record_results(self._writer, messages, stamp_ns, self.get_name())
+                record_results(self._writer, messages, stamp_ns, self._status_name())
         if not publish:
             return
         if server is not None:
@@ -938,18 +950,16 @@ class IdentificationCore:
         except Exception as exc:  # still close the file
             print(f"hammer_ros_node: final solve failed ({type(exc).__name__}: {exc})", file=sys.stderr)
         with self._writer_lock:
-            if self._writer is not None:
-                try:
-                    self._writer.close()
-                    print(f"hammer_ros_node: {self._writer.count} messages in {self._writer.path}", file=sys.stderr)
-                except OSError as exc:  # e.g. the disk is full
-                    print(f"hammer_ros_node: error: output_mcap {self._writer.path}: {exc.strerror or exc}",
-                          file=sys.stderr)
-                self._writer = None
+            self._close_writer()
         if self.last_outcome is not None:
             stale = None if outcome is not None and outcome.ok else getattr(outcome, "reason", "final solve failed")
             print(f"hammer_ros_node: final model: {model_json(self.last_outcome, stale)}", file=sys.stderr)
         return outcome
+
+    def _close_writer(self) -> None:
+        """Finish output_mcap (its count on stderr) and forget it."""
+        close_output_mcap(self._writer)
+        self._writer = None
 
     def _add_node_diagnostics(self, status: dict) -> None:
         values: dict[str, Any] = {
