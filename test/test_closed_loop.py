@@ -123,15 +123,21 @@ def test_replay_with_the_reference_equals_identify(loop_files, capsys, method):
 
 
 def test_fleet_with_the_reference_gives_the_replay_model(loop_files, capsys, tmp_path):
+    """And ``--diagnose``: the row's diagnosis is replay's, instrumented by the reference."""
+    from hammer_ros.fleet.tasks import row_diagnosis
+
     root, _ = loop_files
-    common = ["--input", "/cmd:data", "--output", "/position:data", "--order", "3", "--reference", "/ref:data"]
+    common = ["--input", "/cmd:data", "--output", "/position:data", "--order", "3", "--reference", "/ref:data",
+              "--diagnose"]
     replayed = run_json(capsys, "replay", str(root / "closed.mcap"), *common, "--json")
+    assert replayed["diagnosis"]["baseline"]["input"] == "reference_part"
     done = subprocess.run([str(Path(sys.executable).parent / "hammer-ros"), "fleet", str(root / "closed.mcap"),
                            *common, "--workers", "1", "--out", str(tmp_path / "fleet"), "--json"],
                           capture_output=True, text=True, timeout=300)  # a cluster of its own: a process
     assert done.returncode == 0, done.stderr[-2000:]
     fleet = json.loads(done.stdout)
     assert fleet["ok"] == 1 and fleet["rows"][0]["poles"] == replayed["poles"]
+    assert fleet["rows"][0]["diagnosis"] == row_diagnosis(replayed["diagnosis"])
 
 
 @pytest.mark.parametrize(("argv", "reason"), [
@@ -217,11 +223,13 @@ def test_diagnose_names_a_bad_reference(loop_files, capsys, argv, reason):
 @pytest.mark.ros
 def test_the_live_node_uses_its_reference_topic(ros_env, tmp_path):
     """A closed loop published live (header-stamped JointStates on /cmd, /ref, /position): with
-    reference_topic the node's model is the instrumented one, near the true poles."""
+    reference_topic the node's model is the instrumented one, near the true poles, and so is its
+    diagnosis's baseline (~/diagnose, in the diagnosis process: fitted on the reference's part)."""
     import signal
 
     from ros_helpers import Listener, RosProcess
     from sensor_msgs.msg import JointState
+    from std_srvs.srv import Trigger
 
     closed, _ = random_loop_pair(104, samples=SAMPLES)
     fields = {f"{role}_{key}": value for role, topic in (("excitation", "/cmd"), ("response", "/position"),
@@ -249,6 +257,16 @@ def test_the_live_node_uses_its_reference_topic(ros_env, tmp_path):
                                   what="a model of the whole record")[-1]
         poles = np.array([complex(*p) for p in model["poles"]])
         assert root_rss_error(closed.linear.poles, poles) < 0.08, model
+        client = listener.node.create_client(Trigger, "/hammer_ros/diagnose")  # in the diagnosis process
+        listener.wait_for(client.service_is_ready, what="~/diagnose")
+        answer = listener.wait_future(lambda: client.call_async(Trigger.Request()), timeout=120)
+        assert answer.success, answer.message
+        diagnosis = json.loads(answer.message)  # instrumented by the node's reference, as replay --diagnose
+        assert diagnosis["baseline"]["input"] == "reference_part", diagnosis
+        baseline = np.array([complex(*p) for p in diagnosis["baseline"]["poles"]])
+        assert root_rss_error(closed.linear.poles, baseline) < 0.08, diagnosis["baseline"]
+        row = [e for e in diagnosis["evidence"] if e["test"] == "closed_loop"]
+        assert len(row) == 1 and row[0]["passed"] is False and "the reference was used" in row[0]["note"]
     finally:
         listener.close()
         code = node.stop(signal.SIGINT)

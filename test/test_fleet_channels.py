@@ -2,7 +2,7 @@
 with two joints in one JointState (by name) and one command array, one bag a day; a row per
 (bag, channel) with the joint's model against the generator's truth, the change test per channel
 (joint2's gain drift flagged from its first day, joint1 never), the channel in fleet.parquet,
-the JSON and fleet.html, a channel's row equal to ``replay``'s of that channel, and bad channel
+the JSON and fleet.html, a channel's row (and its diagnosis) equal to ``replay``'s of that channel, and bad channel
 lists (exit 2, one line, before any work)."""
 
 from __future__ import annotations
@@ -139,6 +139,31 @@ def test_a_channels_row_equals_replay_of_the_channels(arm_fleet):
         expected = dict(replayed[row["channel"]])
         expected.pop("wall_s")
         assert {k: row[k] for k in expected} == expected
+
+
+def test_diagnose_gives_each_channel_the_diagnosis_of_replay_diagnose(arm_fleet, tmp_path):
+    """``fleet --diagnose`` with channels: each (bag, channel) row's diagnosis is the one
+    ``replay --diagnose`` gives that channel of the bag (cause, gain, confidence), in the JSON and
+    in fleet.parquet."""
+    from hammer_ros.fleet.tasks import row_diagnosis
+
+    bags, config, _, _ = arm_fleet
+    paths = sorted(bags)[-2:]
+    out = tmp_path / "out"
+    code, stdout = run_json(["fleet", *paths, "--config", str(config), "--workers", "1", "--diagnose",
+                             "--out", str(out), "--json"])
+    assert code == 0
+    doc = json.loads(stdout)
+    assert (doc["ok"], doc["failed"]) == (4, 0)
+    stored = {(r["path"], r["channel"]): r["diagnosis"] for r in read_rows(out / "fleet.parquet")[0]}
+    for path in paths:
+        code, stdout = run_json(["replay", path, "--config", str(config), "--diagnose", "--json"])
+        assert code == 0
+        replayed = json.loads(stdout)["channels"]
+        for row in (r for r in doc["rows"] if r["path"] == path):
+            expected = row_diagnosis(replayed[row["channel"]]["diagnosis"])
+            assert expected["cause"] is not None and "error" not in expected, expected
+            assert row["diagnosis"] == expected == stored[(path, row["channel"])], (path, row["channel"])
 
 
 def test_resume_keeps_the_finished_bags_channels_and_replays_the_rest(arm_fleet, tmp_path):

@@ -51,9 +51,6 @@ def run(args: argparse.Namespace) -> int:
     channels = config_channels(params, source)
     runs = channel_runs(args, channels, source) if len(channels) > 1 else []
     if runs:
-        if args.diagnose:
-            raise UsageError(f"--diagnose: not with several channels ({source} has {len(channels)}) yet; run the "
-                             "fleet on one channel's config for it")
         rates = {run.config.sample_rate for run in runs}
         if len(rates) > 1:
             raise UsageError(f"{source}: channels: fleet needs one sample_rate for all channels (got "

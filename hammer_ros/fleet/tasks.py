@@ -67,13 +67,12 @@ def run_bag(settings: FleetSettings, source: BagSource) -> dict[str, Any]:
             out.parent.mkdir(parents=True, exist_ok=True)
         result = replay_bag(source.path, settings.excitation, settings.response, settings.config,
                             settings.solve_rate, frame_id=settings.frame_id, out=out, atomic=True,
-                            keep_window=settings.diagnose, reference=settings.reference)
+                            diagnose=settings.diagnose, reference=settings.reference)
         row["warnings"] = result.read.warnings(source.path)
         row["start"], row["end"] = _finite(result.first_stamp), _finite(result.last_stamp)
         row["model"] = result.document()
         row["out"] = str(out) if out is not None else None
-        if settings.diagnose and result.window is not None:
-            row["diagnosis"] = diagnose_window(*result.window, settings.config)
+        row["diagnosis"] = row_diagnosis(result.diagnosis)
     except Exception as exc:  # a bag must never stop the fleet: its row says what happened
         row["error"] = error_text(exc, source.path)
     row["seconds"] = time.perf_counter() - started
@@ -94,12 +93,14 @@ def run_channels_bag(settings: FleetSettings, source: BagSource) -> list[dict[st
             check_replay_input(source.path, c.excitation, c.response, out)
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
-        results = replay_channels(source.path, list(settings.channels), frame_id=settings.frame_id, out=out)
+        results = replay_channels(source.path, list(settings.channels), frame_id=settings.frame_id, out=out,
+                                  diagnose=settings.diagnose)
         for row, c in zip(rows, settings.channels, strict=True):
             result = results[c.name]
             row["warnings"] = result.read.warnings(source.path)
             row["start"], row["end"] = _finite(result.first_stamp), _finite(result.last_stamp)
             row["out"] = str(out) if out is not None else None
+            row["diagnosis"] = row_diagnosis(result.diagnosis)
             try:
                 row["model"] = result.document()
             except HammerRosError as exc:
@@ -134,19 +135,17 @@ def _results_path(settings: FleetSettings, source: BagSource) -> Path | None:
     return Path(settings.results_dir) / source.name if settings.results_dir else None
 
 
-def diagnose_window(v: np.ndarray, y: np.ndarray, config: EngineConfig) -> dict[str, Any]:
-    """``diagnose`` of the replay's final window (as the node diagnoses its window): cause and
-    gain, or the reason it could not be diagnosed."""
-    from ..diagnosis.diagnose import diagnose_record
-
-    try:
-        with np.errstate(all="ignore"):
-            d = diagnose_record(v, y, order=config.order, delay=config.delay).to_json()
-    except (HammerRosError, ValueError, np.linalg.LinAlgError) as exc:
-        return {"cause": None, "gain": None, "error": f"window not diagnosable: {exc}"}
-    gain = d.get("gain")
-    return {"cause": d["cause"], "gain": gain.get("rms_ratio") if isinstance(gain, dict) else gain,
-            "confidence": d.get("confidence")}
+def row_diagnosis(doc: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A row's diagnosis from the replay's (``replay --diagnose``: the newest 10 000 samples,
+    instrumented by ``--reference``): cause, gain (rms ratio) and confidence, or the reason the
+    window could not be diagnosed; None without ``--diagnose``."""
+    if doc is None:
+        return None
+    if "error" in doc:
+        return {"cause": None, "gain": None, "error": doc["error"]}
+    gain = doc.get("gain")
+    return {"cause": doc["cause"], "gain": gain.get("rms_ratio") if isinstance(gain, dict) else gain,
+            "confidence": doc.get("confidence")}
 
 
 def _finite(x: float) -> float | None:

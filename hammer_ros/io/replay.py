@@ -42,7 +42,7 @@ from ..ros.outputs import (
 )
 from ..streaming.config import EngineConfig, EngineStats
 from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome, estimate_snapshot, portable_estimate
-from ..streaming.solver_process import SolverProcess, diagnose_window
+from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window
 from .bags import (
     FLUSH_SAMPLES,
     BagReadStats,
@@ -118,7 +118,6 @@ class ReplayResult:
     written: int  # messages written into ``out`` (and ``dashboard_out``)
     first_stamp: float  # bag time (s) of the first and last sample read (nan: none)
     last_stamp: float
-    window: tuple[np.ndarray, np.ndarray] | None = None  # the final raw window (v, y), with keep_window
     diagnosis: dict | None = None  # the final window's diagnosis (the ``~/diagnosis`` JSON), with diagnose
 
     def document(self) -> dict:
@@ -159,7 +158,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
                solve_rate: float, *, frame_id: str = "", out: str | Path | None = None,
                publisher: Publisher | None = None, rate: float | None = None, stop: Stop | None = None,
                progress: Callable[[int, int, int, bool], None] | None = None,
-               node_name: str = NODE_NAME, atomic: bool = False, keep_window: bool = False,
+               node_name: str = NODE_NAME, atomic: bool = False,
                solver: SolverProcess | None = None, dashboard_out: str | Path | None = None,
                diagnose: bool = False, diagnosis_window: int = DIAGNOSIS_WINDOW,
                reference: StreamSpec | None = None) -> ReplayResult:
@@ -171,7 +170,6 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     (as the node's ``~/diagnosis``, stamped as the final result) and write it; ``publisher`` with ``rate``:
     pace at ``rate`` x real time and publish each result; ``stop``: polled between messages;
     ``progress(messages_done, aligned_samples, solves, force)``: called after every message;
-    ``keep_window``: return the engine's final raw window (what ``diagnose`` of the bag reads);
     ``solver``: solve there, overlapping the reading (module docstring); ``reference``: a closed
     loop's reference (checked like the streams), the instrument of every solve (``add_reference``;
     a message of n > 1 samples is placed at the grid rate once it is known).
@@ -298,26 +296,21 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             elif atomic:
                 target.unlink(missing_ok=True)
     first = float(bag_start) if bag_start is not None else float("nan")
-    window = None
-    if keep_window:
-        snapshot = engine.snapshot()
-        window = (snapshot.v, snapshot.y)
     written = (writer.count if writer else 0) + (dashboard.count if dashboard else 0)
     return ReplayResult(str(bag), last_ok, last, engine.stats, read, done, total, time.perf_counter() - started,
-                        written, first, bag_time, window, diagnosis)
+                        written, first, bag_time, diagnosis)
 
 
 def diagnose_final(engine: StreamingEngine, config: EngineConfig, newest: int) -> dict:
     """The node's ``~/diagnosis`` JSON of the newest ``newest`` samples of the engine's window
     (``diagnose_window``: estimation on the first 70 %, validation on the rest; with the reference
-    when the engine holds one at every one of those samples) with ``samples``, ``stamp`` (grid
-    time, s) and ``seconds``."""
+    when the engine holds one at every one of those samples, ``newest_window``) with ``samples``,
+    ``stamp`` (grid time, s) and ``seconds``."""
     snapshot = engine.snapshot()
-    v, y = snapshot.v[-newest:], snapshot.y[-newest:]
-    r = None if snapshot.reference_window is None else snapshot.reference_window[-newest:]
+    v, y, r = newest_window(snapshot, newest)
     started = time.perf_counter()
     doc = {"samples": int(v.size), "stamp": snapshot.stamp if math.isfinite(snapshot.stamp) else None}
-    doc |= diagnose_window(v, y, config.order, r if r is not None and np.all(np.isfinite(r)) else None)
+    doc |= diagnose_window(v, y, config.order, r)
     doc["seconds"] = time.perf_counter() - started
     return doc
 

@@ -65,7 +65,7 @@ from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
-from ..streaming.solver_process import SolverProcess, diagnose_window  # noqa: E402
+from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
 from .cdr import extract_batch, raw_extractor  # noqa: E402
 from .dashboard import dashboard_messages, record_results  # noqa: E402
 from .field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
@@ -839,21 +839,22 @@ class IdentificationCore:
             self._publish(outcome, stats, publish)
             return outcome
 
-    def _diagnosis(self, v: np.ndarray, y: np.ndarray) -> dict[str, Any]:
-        """``diagnose_window`` in the diagnosis process (with ``solver_process``; started by the
-        first diagnosis, so a node that never diagnoses never pays for it), or here when there is
-        none (or it is gone). Called under ``_diagnose_lock``."""
+    def _diagnosis(self, v: np.ndarray, y: np.ndarray, reference: np.ndarray | None) -> dict[str, Any]:
+        """``diagnose_window`` (instrumented by ``reference`` when the node has one over the window)
+        in the diagnosis process (with ``solver_process``; started by the first diagnosis, so a node
+        that never diagnoses never pays for it), or here when there is none (or it is gone). Called
+        under ``_diagnose_lock``."""
         order = self.values["order"]
         if self.values["solver_process"] and not self.diagnoser_lost:
             try:
                 if self.diagnoser is None:
                     self.diagnoser = SolverProcess(role="diagnosis")
-                return self.diagnoser.diagnose(v, y, order)
+                return self.diagnoser.diagnose(v, y, order, reference)
             except RuntimeError as exc:
                 self.get_logger().error(f"diagnosis process lost ({exc}); diagnosing in the node's thread from now on")
                 self.diagnoser.close()
                 self.diagnoser, self.diagnoser_lost = None, str(exc)
-        return diagnose_window(v, y, order)
+        return diagnose_window(v, y, order, reference)
 
     def _solve(self, snapshot: EngineSnapshot) -> SolveOutcome:
         """``solve_snapshot`` in the solver process, or here when there is none (or it is gone)."""
@@ -881,15 +882,15 @@ class IdentificationCore:
 
     def _diagnose_once(self, snapshot: EngineSnapshot | None = None) -> dict[str, Any]:
         """Diagnose the newest ``diagnosis_window`` samples of the window (of ``snapshot``, else of
-        a new one), publish the JSON on ~/diagnosis and return it."""
+        a new one; with ``reference_topic``, instrumented by the reference over them), publish the
+        JSON on ~/diagnosis and return it."""
         if snapshot is None:
             with self._lock:
                 snapshot = self.engine.snapshot()
-        newest = self.values["diagnosis_window"]
-        v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+        v, y, r = newest_window(snapshot, self.values["diagnosis_window"])
         started = time.perf_counter()
         doc: dict[str, Any] = {"samples": int(v.size), "stamp": snapshot.stamp}
-        doc |= self._diagnosis(v, y)
+        doc |= self._diagnosis(v, y, r)
         doc["seconds"] = time.perf_counter() - started
         rows = [e for e in doc.get("evidence", ()) if e.get("test") == CLOSED_LOOP_TEST]
         self.closed_loop = (not rows[0]["passed"]) if rows else None

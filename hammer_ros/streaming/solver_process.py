@@ -65,11 +65,21 @@ DOCUMENT = "document"  # the request for the published model's documented outcom
 
 @dataclass(frozen=True, eq=False)
 class Diagnose:
-    """The request for ``diagnose_window(v, y, order)`` (``SolverProcess.diagnose``)."""
+    """The request for ``diagnose_window(v, y, order, reference)`` (``SolverProcess.diagnose``)."""
 
     v: np.ndarray
     y: np.ndarray
     order: int
+    reference: np.ndarray | None = None
+
+
+def newest_window(snapshot: EngineSnapshot, newest: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The newest ``newest`` samples of the snapshot's raw window, (v, y), and the reference over
+    them: None without one, or when it is missing (NaN) at one of them (what the node's and the
+    replay's diagnoses read)."""
+    v, y = snapshot.v[-newest:], snapshot.y[-newest:]
+    r = None if snapshot.reference_window is None else snapshot.reference_window[-newest:]
+    return v, y, r if r is not None and np.all(np.isfinite(r)) else None
 
 
 def diagnose_window(v: np.ndarray, y: np.ndarray, order: int, reference: np.ndarray | None = None) -> dict[str, Any]:
@@ -106,7 +116,7 @@ def _serve(connection, documents: bool, ready) -> None:
         if batch is None:
             return
         if isinstance(batch, Diagnose):
-            connection.send(diagnose_window(batch.v, batch.y, batch.order))
+            connection.send(diagnose_window(batch.v, batch.y, batch.order, batch.reference))
             continue
         if batch == DOCUMENT:
             answer = None if published_outcome is None else replace(document_outcome(*published_outcome), result=None)
@@ -249,10 +259,11 @@ class SolverProcess:
         Every outcome submitted must have been taken by ``result``."""
         return self._ask(DOCUMENT)
 
-    def diagnose(self, v: np.ndarray, y: np.ndarray, order: int) -> dict[str, Any]:
-        """``diagnose_window(v, y, order)`` in the worker (waits for it). Every outcome submitted
-        must have been taken by ``result``."""
-        return self._ask(Diagnose(v, y, order))
+    def diagnose(self, v: np.ndarray, y: np.ndarray, order: int,
+                 reference: np.ndarray | None = None) -> dict[str, Any]:
+        """``diagnose_window(v, y, order, reference)`` in the worker (waits for it). Every outcome
+        submitted must have been taken by ``result``."""
+        return self._ask(Diagnose(v, y, order, reference))
 
     def _ask(self, request: Any) -> Any:
         if self.in_flight:
