@@ -94,9 +94,9 @@ class Plan:
     peer_frols: tuple[tuple[int, int, int], ...]  # (degree, lags, terms) of the FROLS runs
     memory_windows: tuple[int, ...]
     fleet_bags: int = 200  # small bags replayed serially and by `fleet --workers 2`
-    # None: the node's ladders (``node_rates``), whose figures the run stores in NODE_LIMITS; a
-    # step: the seeded search on rungs this far apart (``_seeded_limits``; ``node_rates`` are then
-    # only the start without a stored figure)
+    # None: the node's ladders (``node_rates``); a step: the seeded search on rungs this far apart
+    # (``_seeded_limits``, from the figures of the last run stored in NODE_LIMITS; ``node_rates``
+    # are then only the start without a stored figure). Either run stores its figures there.
     node_step: float | None = None
     node_joint_rates: tuple[float, ...] = ()  # the six-joint row's ladder (full bench only: 70 s more in the quick one)
 
@@ -104,10 +104,10 @@ class Plan:
 QUICK = Plan(
     name="quick", repeats=3, ingest_samples=200_000, ingest_taus=(50, 200), ingest_windows=(10_000,),
     ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
-    node_rates={1: (20000.0,), 100: (15000.0,)}, node_seconds=2.0, node_step=1.1,
+    node_rates={1: (20000.0,), 100: (15000.0,)}, node_seconds=1.5, node_step=1.1,
     replay_messages={1: 20_000, 100: 2_000}, replay_repeats=3, solve_windows=(4000,), solve_repeats=60,
     slow_solve_repeats=5,
-    peer_frols=((3, 3, 15),), memory_windows=(10_000,),
+    peer_frols=((3, 3, 15),), memory_windows=(10_000,), fleet_bags=100,
 )
 FULL = Plan(
     name="full", repeats=5, ingest_samples=1_000_000, ingest_taus=(50, 200), ingest_windows=(10_000, 100_000),
@@ -309,7 +309,8 @@ def _past_the_bare_limit(ladder: Sequence[float], failed):
 
 def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[str, ...],
             tried: list[str], cpu: dict[tuple[str, float], dict[str, float]] | None = None,
-            confirmations: int = CONFIRMATIONS) -> dict[str, Any]:
+            confirmations: int = CONFIRMATIONS, retries: int = STALL_RETRIES,
+            runs: dict[str, int] | None = None) -> dict[str, Any]:
     """Samples lost by each of ``subscribers`` at ``rate`` (or why the rate is not a measurement);
     a line for the table goes to ``tried``, the CPU of each run to ``cpu[(who, rate)]``
     (``_cpu_use``). The rate the publisher kept leaves out the time of up to MAX_STALLS stalls
@@ -317,10 +318,11 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
     plain average counts, and below 95 % of ``rate``, or with fewer than 95 % of the run's
     messages sent, the run is not a measurement of the subscriber. A subscriber whose publisher
     fell short so, or that lost samples in a run in which the publisher stalled, is run again, up
-    to STALL_RETRIES times: the instrument failed. A loss in a clean run is confirmed by
+    to ``retries`` (STALL_RETRIES) times: the instrument failed. A loss in a clean run is confirmed by
     ``confirmations`` (CONFIRMATIONS) more runs, so that one hiccup of the shared machine does not
     end a subscriber's ladder (both subscribers alike; the seeded search confirms only the loss
-    that decides a figure). The figure is the last run's."""
+    that decides a figure). The figure is the last run's. ``runs``: each subscriber's count of
+    probe runs, reruns included, is added to it."""
     lost: dict[str, Any] = {}
     reruns: dict[str, int] = {}
     confirmed: dict[str, int] = {}
@@ -331,6 +333,8 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
         again = []
         for row in results:
             who = SUBSCRIBER_KEYS.get(row["subscriber"], "bare")
+            if runs is not None:
+                runs[who] = runs.get(who, 0) + 1
             stalled = row.get("stalled_seconds", 0.0) if row.get("stalls", 0) <= MAX_STALLS else 0.0
             achieved = row["messages"] / max(row["publish_seconds"] - stalled, 1e-9)
             planned = int(rate * seconds)
@@ -348,7 +352,7 @@ def _losses(probe, rate: float, batch: int, seconds: float, subscribers: tuple[s
             instrument = behind or (stalled > 0 and lossy)
             if "error" in row:
                 continue
-            if instrument and reruns.get(who, 0) < STALL_RETRIES:
+            if instrument and reruns.get(who, 0) < retries:
                 reruns[who] = reruns.get(who, 0) + 1
                 again.append(who)
             elif lossy and not instrument and confirmed.get(who, 0) < confirmations:
@@ -418,8 +422,9 @@ def _zero_loss_limits(batch: int, ladder: Sequence[float], seconds: float, probe
 
 
 JOINTS = 6  # the node section's JointState row: joints of one topic, each a channel of one node
-NODE_LIMITS = DATA_DIR / "bench_node_limits.json"  # the last full run's figures: where the quick search starts
-SEARCH_RUNS = 10  # runs per subscriber at most in the seeded search (a seed 3 x off takes 9)
+NODE_LIMITS = DATA_DIR / "bench_node_limits.json"  # the last run's figures: where the quick search starts
+SEARCH_RUNS = 9  # probe runs per subscriber at most in the seeded search, reruns included (a seed 2.3 x off takes 9)
+SEARCH_RETRIES = 1  # its reruns of a run the publisher spoiled (the ladders': STALL_RETRIES)
 
 
 @dataclass
@@ -435,10 +440,9 @@ class _Search:
     lossy: int | None = None
     confirmed: bool = False  # the run at ``lossy`` was confirmed (or was not a sample loss)
     stride: int = 1
-    runs: int = 0
+    runs: int = 0  # probe runs, reruns included (``_seeded_limits`` counts them)
 
     def record(self, ok: bool, sample_loss: bool) -> None:
-        self.runs += 1
         if self.lossy is not None and self.index == self.lossy and self.lossless == self.index - 1:  # confirming
             self.confirmed = not ok
             if ok:  # its limit is near: climb one rung, then 2, 4 ...
@@ -465,12 +469,14 @@ class _Search:
 def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: float, probe,
                    cpu: dict | None = None):
     """What ``_zero_loss_limits`` returns, by a search (``_Search``) of each subscriber from its
-    seed (the last full run's figure) on one grid of rungs ``step`` apart anchored at the bare
+    seed (the last run's figure) on one grid of rungs ``step`` apart anchored at the bare
     subscriber's seed, so that node / bare is a power of ``step`` and each figure lies within one
     step of its limit. Each round runs the subscribers still searching (those at the same rate
     in one ``_losses`` call, with its reruns of a failed instrument). A subscriber that would go
-    above LADDER_CAP stops there, below 100 msg/s at 0; one stops after SEARCH_RUNS runs (its
-    figure a lower bound when nothing above it was lossy then)."""
+    above LADDER_CAP stops there, below 100 msg/s at 0; one stops after SEARCH_RUNS probe runs
+    (reruns of a spoiled run, at most SEARCH_RETRIES each, included; its
+    figure a lower bound when nothing above it was lossy then, its bracket wider than a rung when
+    a lossy rung lies further up)."""
     anchor = seeds["bare"]
 
     def rate(k: int) -> float:
@@ -489,7 +495,10 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
         rungs = {who: searches[who].index for who in running}  # one run of each per round
         for k in sorted(set(rungs.values())):
             group = tuple(who for who in running if rungs[who] == k)
-            for who, lost in _losses(probe, rate(k), batch, seconds, group, tried, cpu, confirmations=0).items():
+            runs: dict[str, int] = {}
+            for who, lost in _losses(probe, rate(k), batch, seconds, group, tried, cpu, confirmations=0,
+                                     retries=SEARCH_RETRIES, runs=runs).items():
+                searches[who].runs += runs.get(who, 0)
                 sample_loss = isinstance(lost, int) and lost > 0
                 searches[who].record(lost == 0, sample_loss)
                 if sample_loss:
@@ -501,19 +510,20 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
 
 
 def stored_node_limits(path: Path = NODE_LIMITS) -> dict[str, Any]:
-    """The figures the last full run stored ({"date", "limits": {batch: {subscriber: msg/s}}}), or {}."""
+    """The figures the last run stored ({"date", "plan", "limits": {batch: {subscriber: msg/s}}}), or {}."""
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
 
 
-def _store_node_limits(rows: list[dict], path: Path = NODE_LIMITS) -> str:
+def _store_node_limits(rows: list[dict], path: Path = NODE_LIMITS, plan: str = "full") -> str:
     """Write each message row's three figures to ``path`` for the quick search (not the JointState
     row's: the quick bench has none); a note saying so (or why not)."""
     limits = {str(r["batch"]): {"node": r["node_rate"], "bare": r["reference_rate"], "foxglove": r["foxglove_rate"]}
               for r in rows if r.get("reference_rate") and not r.get("joints")}  # the quick search's seeds
-    doc = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "limits": limits}
+    doc = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "plan": plan,
+           "limits": limits}
     try:
         path.write_text(json.dumps(doc, indent=1) + "\n")
     except OSError as exc:
@@ -597,22 +607,28 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
             best, first_loss, tried, lower = _zero_loss_limits(1, joint_rates, seconds, probe, cpu, who)
         section.rows.append(_node_row(1, best, first_loss, tried, lower, cpu, joints=JOINTS))
     if step:
-        origin = (f"the full run of {stored['date']}" if stored.get("date") else
+        origin = (f"the {stored.get('plan', 'full')} run of {stored['date']}" if stored.get("date") else
                   f"the plan's {', '.join(f'{r[-1]:g}' for r in rates.values())} msg/s (no figures stored)")
         section.notes.append(f"quick search: each subscriber starts at its figure of {origin} "
                              f"(`{limits_path.name}` in hammer_ros/data) on rungs x{step:g} apart (one grid per "
                              "message, anchored at the bare subscriber's figure), goes up while lossless and down "
                              "while not by 1, 2, 4 ... rungs, then bisects until its last lossless and first other "
-                             f"rate are one rung apart (at most {SEARCH_RUNS} rates): each figure is within x{step:g} "
-                             "of its limit, and the range column is what node / bare can be at that resolution")
-    elif section.rows:
-        section.notes.append(_store_node_limits(section.rows, limits_path))
-    section.notes.append("`ros_rate_probe`: one publisher process sends both topics (reliable, depth 1000) for the "
-                         "stated time, from the moment both ends have matched both topics, to the bare subscriber "
-                         "(EventsExecutor, counting) and to a fresh `hammer-ros node` (window 4000, cls-markov, "
-                         "4 solves/s; its /diagnostics counters), and "
+                             f"rate are one rung apart (at most {SEARCH_RUNS} probe runs each, reruns of a run the "
+                             f"publisher spoiled, at most {SEARCH_RETRIES} per rate, included): each figure is within "
+                             f"x{step:g} of its limit (or its range says how far), and the range column is what "
+                             "node / bare can be at that resolution")
+    if section.rows:
+        section.notes.append(_store_node_limits(section.rows, limits_path, "quick" if step else "full"))
+    section.notes.append("`ros_rate_probe`: one publisher process per message type sends both topics (reliable, "
+                         "depth 1000) for the stated time, from the moment both ends have matched both topics, to "
+                         "the bare subscriber (EventsExecutor, counting) and to a `hammer-ros node` (window 4000, "
+                         "cls-markov, 4 solves/s; its /diagnostics counters), and "
                          "to one more with its Foxglove server on (`foxglove_port`) and one WebSocket client "
                          "subscribed to every channel (goal: >= 0.9 of the node's rate, i.e. at most 10 % lower); "
+                         "each subscriber has topics of its own, and the publisher and the subscribers are started "
+                         "once per message type and kept for all its runs (before each run the node's sample_rate "
+                         "is set and its window and counters reset by ~/reset, after it reset again: it idles on "
+                         "an empty window while the others run); "
                          "a rate counts when the publisher kept >= 95 % of it, sent >= 95 % of the run's messages "
                          "and every sample arrived. The "
                          "publisher sends each message in its slot; when it falls more than 20 ms behind (descheduled) "
