@@ -315,3 +315,22 @@ def test_several_fields_of_a_topic_are_read_in_one_pass_as_one_by_one():
         assert topic_decoder(JointState, [paths[0], parse_field_path(text)]) is None, text
     noise = [rng.integers(0, 256, 40).astype(np.uint8).tobytes() for _ in range(50)]
     assert topic_decoder(JointState, paths).decode(noise).values.shape == (50, 12)  # bad or numbers
+
+
+def test_the_alignment_padding_does_not_make_a_new_layout():
+    """A serializer need not zero CDR's alignment padding (rclpy's leaves what its buffer held): two
+    messages that differ in padding bytes only share one plan and read the same numbers."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import JointState
+
+    msg = JointState(name=["a", "b"], position=[1.5, 2.5])
+    msg.header.frame_id = "base"  # 4 + 4 + 4 + 5 bytes: the names' count is aligned after 3 bytes of padding
+    data = serialize_message(msg)
+    smudged = bytearray(data)
+    smudged[4 + 17 : 4 + 20] = b"\xab\xcd\xef"
+    back = deserialize_message(bytes(smudged), JointState)
+    assert back.header.frame_id == "base" and list(back.name) == ["a", "b"]  # they were padding
+    decoder = topic_decoder(JointState, [parse_field_path("position[b]")])
+    decoded = decoder.decode([data, bytes(smudged)])
+    assert len(decoder._plans) == 1
+    assert decoded.values[:, 0].tolist() == [2.5, 2.5] and not decoded.bad.any()

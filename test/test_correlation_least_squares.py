@@ -321,11 +321,10 @@ def test_least_squares_by_qr_equals_the_svd_solution():
 
 
 def test_step_2_filters_every_basis_column_as_np_convolve():
-    """``_fir_valid`` (one matmul over the non-overlapping windows of each phase, then the last
+    """``fir_valid`` (one matmul over the non-overlapping windows of each phase, then the last
     rows mod m outputs) equals np.convolve(..., "valid") column by column, for any N mod m, a
     row-major basis and fewer outputs than taps."""
-    from hammer_ros.identification.correlation_least_squares import _fir_valid
-    from hammer_ros.identification.regression import polynomial_basis
+    from hammer_ros.identification.regression import fir_valid, polynomial_basis
 
     rng = np.random.default_rng(4)
     for samples, taps, columns in ((4000, 33, 3), (100, 33, 3), (65, 33, 1), (33, 33, 2), (500, 7, 5), (40, 1, 2)):
@@ -333,7 +332,7 @@ def test_step_2_filters_every_basis_column_as_np_convolve():
         for basis in (x, np.asfortranarray(x)):
             h = rng.normal(size=taps)
             out = np.full((samples - taps + 1, columns), np.nan, order="F")
-            _fir_valid(basis, h, out)
+            fir_valid(basis, h, out)
             expected = np.column_stack([np.convolve(basis[:, j], h, "valid") for j in range(columns)])
             np.testing.assert_allclose(out, expected, rtol=1e-12, atol=1e-13 * np.abs(expected).max())
     powers = polynomial_basis(rng.normal(size=50), 3, constant=True)

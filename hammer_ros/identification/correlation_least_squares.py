@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from ..errors import IdentificationError
 from .correlation import auto_correlation, cross_correlation
@@ -41,7 +40,16 @@ from .era import eigensystem_realization
 from .instrumental import check_reference, reference_part, solve_instrumental
 from .linear import LinearModel
 from .piecewise_linear_ls import check_partition, default_primary_index, point_slope_basis, point_slope_map
-from .regression import Regression, fit_regression, largest_lag, least_squares_qr, markov_lags, polynomial_basis
+from .regression import (
+    Regression,
+    filtered_basis,
+    filtered_output,
+    fit_regression,
+    largest_lag,
+    least_squares_qr,
+    markov_lags,
+    polynomial_basis,
+)
 from .result import IdentificationResult
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
@@ -187,35 +195,10 @@ def gain_correction(
         raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
     numerator = np.zeros(first + 1)
     numerator[input_lags] = step1.numerator
-    rows = v.size - first
-    target = y[first:].copy()  # A_hat(q^-1) y = lfilter(denominator, [1], y)[first:], its n lags added
-    for lag, alpha in zip(output_lags.tolist(), step1.denominator.tolist(), strict=True):
-        target += alpha * y[first - lag : first - lag + rows]
-
-    def filtered(columns: np.ndarray) -> np.ndarray:
-        out = np.empty((rows, columns.shape[1]), order="F")
-        out[:, 0] = columns[0, 0] * numerator.sum()  # the constant column's FIR
-        _fir_valid(columns[:, 1:], numerator, out[:, 1:])
-        return out
+    target = filtered_output(y, output_lags, step1.denominator)[first:]  # A_hat(q^-1) y
     if instrument_basis is not None:
-        return solve_instrumental(filtered(basis), target, filtered(instrument_basis))
-    return least_squares_qr(filtered(basis), target)
-
-
-def _fir_valid(x: np.ndarray, taps: np.ndarray, out: np.ndarray) -> None:
-    """out[:, j] = np.convolve(x[:, j], taps, "valid") for every column of x (N x q) by matmuls:
-    output k is the window x(k .. k + m - 1) times the reversed m taps. With k = i m + r, the
-    windows of one phase r (i = 0, 1, ...) do not overlap, so over the whole blocks of m outputs
-    each (column, phase) is one BLAS matrix-vector product on a strided view of the column; the
-    last rows mod m outputs are one more (small) product."""
-    x = np.asfortranarray(x)
-    m, (n, q) = taps.size, x.shape
-    blocks, step, reversed_taps = (n - m + 1) // m, x.itemsize, taps[::-1].copy()
-    windows = as_strided(x, (q, m, blocks, m), (x.strides[1], step, m * step, step))  # [j, r, i, :]
-    out[: blocks * m].T.reshape(q, blocks, m)[...] = (windows @ reversed_taps).transpose(0, 2, 1)
-    tail = x[blocks * m :]
-    out[blocks * m :] = (as_strided(tail, (q, n - m + 1 - blocks * m, m), (x.strides[1], step, step))
-                         @ reversed_taps).T
+        return solve_instrumental(filtered_basis(basis, numerator), target, filtered_basis(instrument_basis, numerator))
+    return least_squares_qr(filtered_basis(basis, numerator), target)
 
 
 def correlation_least_squares(

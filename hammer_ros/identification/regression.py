@@ -11,6 +11,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 from scipy.linalg import lapack
 
 from ..errors import IdentificationError
@@ -187,3 +188,42 @@ def polynomial_basis(v: np.ndarray, degree: int, constant: bool = False) -> np.n
     for column in range(first + 1, first + degree):  # v^l = v^(l-1) v, the products in turn
         basis[:, column] = basis[:, column - 1] * v
     return basis
+
+
+def fir_valid(x: np.ndarray, taps: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """out[:, j] = np.convolve(x[:, j], taps, "valid") for every column of x (N x q) by matmuls
+    (``out`` a new (N - m + 1) x q array when None; returned):
+    output k is the window x(k .. k + m - 1) times the reversed m taps. With k = i m + r, the
+    windows of one phase r (i = 0, 1, ...) do not overlap, so over the whole blocks of m outputs
+    each (column, phase) is one BLAS matrix-vector product on a strided view of the column; the
+    last rows mod m outputs are one more (small) product."""
+    x = np.asfortranarray(x)
+    m, (n, q) = taps.size, x.shape
+    if out is None:
+        out = np.empty((n - m + 1, q), order="F")
+    blocks, step, reversed_taps = (n - m + 1) // m, x.itemsize, taps[::-1].copy()
+    windows = as_strided(x, (q, m, blocks, m), (x.strides[1], step, m * step, step))  # [j, r, i, :]
+    out[: blocks * m].T.reshape(q, blocks, m)[...] = (windows @ reversed_taps).transpose(0, 2, 1)
+    tail = x[blocks * m :]
+    out[blocks * m :] = (as_strided(tail, (q, n - m + 1 - blocks * m, m), (x.strides[1], step, step))
+                         @ reversed_taps).T
+    return out
+
+
+def filtered_basis(basis: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """The columns of ``basis`` (N x q, its first column a constant) through the FIR ``taps``
+    (lags 0 .. m - 1), the rows from lag m - 1 on: the regressors B(q^-1) f_l(v) of CLS step 2
+    (paper 000 sec. 3.1), (N - m + 1) x q, column-major."""
+    out = np.empty((basis.shape[0] - taps.size + 1, basis.shape[1]), order="F")
+    out[:, 0] = basis[0, 0] * taps.sum()  # the constant column's FIR
+    fir_valid(basis[:, 1:], taps, out[:, 1:])
+    return out
+
+
+def filtered_output(y: np.ndarray, lags: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """A(q^-1) y = y(k) + sum_j a_j y(k - l_j), y = 0 before the record (np.convolve(y, A)[:N]),
+    by one shifted sum per lag."""
+    out = np.array(y, dtype=float)
+    for lag, a in zip(np.asarray(lags).tolist(), np.asarray(coefficients, dtype=float).tolist(), strict=True):
+        out[lag:] += a * y[: y.size - lag]
+    return out

@@ -240,7 +240,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``)."""
     from scipy.linalg import lapack
 
-    from .regression import build_regression, largest_lag, markov_lags
+    from .regression import build_regression, filtered_basis, filtered_output, fir_valid, largest_lag, markov_lags
 
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     tau_max = (np.size(phi_vv) - 1) // 2
@@ -254,10 +254,10 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     a, coefficients = theta[:n], theta[n:-1]
     output_lags, input_lags = markov_lags(order, delay, mu)
     first = largest_lag(order, mu)
-    denominator, numerator = np.zeros(first + 1), np.zeros(first + 1)
-    denominator[0], denominator[output_lags], numerator[input_lags] = 1.0, a, coefficients
-    filtered_y = np.convolve(y, denominator)[: y.size]  # A_hat y: step 2's target from the largest lag on
-    w = filtered_y - np.convolve(v, numerator)[: v.size]
+    numerator = np.zeros(first + 1)
+    numerator[input_lags] = coefficients
+    filtered_y = filtered_output(y, output_lags, a)  # A_hat y: step 2's target from the largest lag on
+    w = filtered_y - fir_valid(np.concatenate([np.zeros(first), v])[:, None], numerator)[:, 0]  # - B_hat v
     w -= w[first:].mean()
 
     centres = v.size - 2 * tau_max
@@ -290,10 +290,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     # step 2 and its dependence on step 1
     rows = v.size - first
     target = filtered_y[first:]
-    regressors = np.empty((rows, basis.shape[1]), order="F")
-    regressors[:, 0] = numerator.sum()
-    for column in range(1, basis.shape[1]):  # the basis filtered by B_hat (rows from the largest lag on)
-        regressors[:, column] = np.convolve(basis[:, column], numerator, "valid")
+    regressors = filtered_basis(basis, numerator)  # step 2's regressors (``gain_correction``'s)
     normal_inverse = np.linalg.inv(regressors.T @ regressors)
     gamma = normal_inverse @ (regressors.T @ target)  # step 2's estimate (a handful of columns: normal equations)
     residual = target - regressors @ gamma

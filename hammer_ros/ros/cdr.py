@@ -447,7 +447,17 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
     """Walk the fields at ``pos``: ``entries`` gets each number field ('scalar', offset, dtype),
     each number array ('array', offset, count, dtype) and each string array ('strings', the
     strings) by dotted name, outside sequences of messages; ``numbers`` the byte ranges of all
-    numbers (the bytes that never change a layout). Returns the position after the fields."""
+    numbers and of the alignment padding (the bytes that never change a layout: a serializer
+    need not zero its padding). Returns the position after the fields."""
+    def padded(pos: int, size: int) -> int:  # the aligned position; the padding before it counts as a number
+        start = _align(pos, size)
+        if start > pos:
+            numbers.append((HEADER + pos, HEADER + start))
+        return start
+
+    def count_at(pos: int) -> tuple[int, int]:
+        return _u32(data, padded(pos, 4), order)
+
     for name, type_name in fields.items():
         kind, what, count = _kind(type_name, nested)
         key = prefix + name
@@ -455,25 +465,29 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
             code, size = what
             n = 1 if count is None else count
             if n < 0:
-                n, pos = _u32(data, pos, order)
-            start = _align(pos, size) if n else pos
+                n, pos = count_at(pos)
+            start = padded(pos, size) if n else pos
             numbers.append((HEADER + start, HEADER + start + n * size))
             dtype = np.dtype(code).newbyteorder(order)
             entries[key] = ("scalar", HEADER + start, dtype) if count is None else ("array", HEADER + start, n, dtype)
             pos = start + n * size
         elif kind == "string":
-            if count is None:
-                pos = _skip_string(data, pos, order)
-                continue
-            found = _strings(data, pos, order, count)
-            entries[key] = ("strings", found)
-            pos = _skipper(type_name, nested)(data, pos, order)
+            n = 1 if count is None else count
+            if n < 0:
+                n, pos = count_at(pos)
+            found = []
+            for _ in range(n):
+                length, pos = count_at(pos)
+                found.append(bytes(data[HEADER + pos : HEADER + pos + max(length - 1, 0)]))
+                pos += length
+            if count is not None:
+                entries[key] = ("strings", found)
         elif count is None:
             pos = _walk(what, nested, data, order, pos, key + ".", entries, numbers)
         else:  # a sequence of messages: walked for its numbers, its fields not addressable
             n = count
             if n < 0:
-                n, pos = _u32(data, pos, order)
+                n, pos = count_at(pos)
                 if n > len(data) - HEADER - pos:
                     raise struct.error("a sequence count beyond the end of the message")
             for _ in range(n):
