@@ -68,9 +68,13 @@ def _align(pos: int, size: int) -> int:
     return (pos + size - 1) & -size
 
 
-def _u32(data: bytes, pos: int, order: str) -> tuple[int, int]:
-    pos = _align(pos, 4)
-    return struct.unpack_from(order + "I", data, HEADER + pos)[0], pos + 4
+def _u32(data: bytes, pos: int, order: str, padding: list[tuple[int, int]] | None = None) -> tuple[int, int]:
+    """The uint32 at the next 4-aligned position and the position after it; the alignment padding
+    before it appended to ``padding`` (as file offsets) when given."""
+    start = _align(pos, 4)
+    if padding is not None and start > pos:
+        padding.append((HEADER + pos, HEADER + start))
+    return struct.unpack_from(order + "I", data, HEADER + start)[0], start + 4
 
 
 def installed_fields(type_name: str) -> dict[str, str]:
@@ -273,16 +277,18 @@ def schema_extractor(name: str, text: str, path: FieldPath) -> Extract | None:
         return None
 
 
-def _strings(data: bytes, pos: int, order: str, count: int) -> list[bytes]:
-    """``count`` CDR strings at ``pos`` (-1: a sequence, its count first), without their NULs."""
+def _strings(data: bytes, pos: int, order: str, count: int,
+             padding: list[tuple[int, int]] | None = None) -> tuple[list[bytes], int]:
+    """``count`` CDR strings at ``pos`` (-1: a sequence, its count first), without their NULs, and
+    the position after them (``padding``: as ``_u32``'s)."""
     if count < 0:
-        count, pos = _u32(data, pos, order)
+        count, pos = _u32(data, pos, order, padding)
     out = []
     for _ in range(count):
-        n, pos = _u32(data, pos, order)
+        n, pos = _u32(data, pos, order, padding)
         out.append(bytes(data[HEADER + pos : HEADER + pos + max(n - 1, 0)]))
         pos += n
-    return out
+    return out, pos
 
 
 def _named_reader(fields: dict[str, str], step, outer: list[Skip], path: FieldPath, nested: Fields) -> Callable:
@@ -303,7 +309,7 @@ def _named_reader(fields: dict[str, str], step, outer: list[Skip], path: FieldPa
         at = 0
         for skip in to_names:
             at = skip(data, at, order)
-        found = _strings(data, at, order, count)
+        found, _ = _strings(data, at, order, count)
         if element not in found:
             named_index([n.decode(errors="replace") for n in found], step.element_name, path)
         index = found.index(element)
@@ -456,7 +462,7 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
         return start
 
     def count_at(pos: int) -> tuple[int, int]:
-        return _u32(data, padded(pos, 4), order)
+        return _u32(data, pos, order, numbers)
 
     for name, type_name in fields.items():
         kind, what, count = _kind(type_name, nested)
@@ -472,14 +478,7 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
             entries[key] = ("scalar", HEADER + start, dtype) if count is None else ("array", HEADER + start, n, dtype)
             pos = start + n * size
         elif kind == "string":
-            n = 1 if count is None else count
-            if n < 0:
-                n, pos = count_at(pos)
-            found = []
-            for _ in range(n):
-                length, pos = count_at(pos)
-                found.append(bytes(data[HEADER + pos : HEADER + pos + max(length - 1, 0)]))
-                pos += length
+            found, pos = _strings(data, pos, order, 1 if count is None else count, numbers)
             if count is not None:
                 entries[key] = ("strings", found)
         elif count is None:
