@@ -64,16 +64,18 @@ class UnsupportedLayout(Exception):
     """The field cannot be read from raw CDR here (the caller falls back to messages)."""
 
 
-def _align(pos: int, size: int) -> int:
-    return (pos + size - 1) & -size
+def _align(pos: int, size: int, padding: list[tuple[int, int]] | None = None) -> int:
+    """``pos`` rounded up to a multiple of ``size``; the alignment padding skipped appended to
+    ``padding`` (as offsets into the serialized message) when given."""
+    start = (pos + size - 1) & -size
+    if padding is not None and start > pos:
+        padding.append((HEADER + pos, HEADER + start))
+    return start
 
 
 def _u32(data: bytes, pos: int, order: str, padding: list[tuple[int, int]] | None = None) -> tuple[int, int]:
-    """The uint32 at the next 4-aligned position and the position after it; the alignment padding
-    before it appended to ``padding`` (as file offsets) when given."""
-    start = _align(pos, 4)
-    if padding is not None and start > pos:
-        padding.append((HEADER + pos, HEADER + start))
+    """The uint32 at the next 4-aligned position and the position after it (``padding``: as ``_align``'s)."""
+    start = _align(pos, 4, padding)
     return struct.unpack_from(order + "I", data, HEADER + start)[0], start + 4
 
 
@@ -455,15 +457,6 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
     strings) by dotted name, outside sequences of messages; ``numbers`` the byte ranges of all
     numbers and of the alignment padding (the bytes that never change a layout: a serializer
     need not zero its padding). Returns the position after the fields."""
-    def padded(pos: int, size: int) -> int:  # the aligned position; the padding before it counts as a number
-        start = _align(pos, size)
-        if start > pos:
-            numbers.append((HEADER + pos, HEADER + start))
-        return start
-
-    def count_at(pos: int) -> tuple[int, int]:
-        return _u32(data, pos, order, numbers)
-
     for name, type_name in fields.items():
         kind, what, count = _kind(type_name, nested)
         key = prefix + name
@@ -471,8 +464,8 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
             code, size = what
             n = 1 if count is None else count
             if n < 0:
-                n, pos = count_at(pos)
-            start = padded(pos, size) if n else pos
+                n, pos = _u32(data, pos, order, numbers)
+            start = _align(pos, size, numbers) if n else pos
             numbers.append((HEADER + start, HEADER + start + n * size))
             dtype = np.dtype(code).newbyteorder(order)
             entries[key] = ("scalar", HEADER + start, dtype) if count is None else ("array", HEADER + start, n, dtype)
@@ -486,7 +479,7 @@ def _walk(fields: dict[str, str], nested: Fields, data: bytes, order: str, pos: 
         else:  # a sequence of messages: walked for its numbers, its fields not addressable
             n = count
             if n < 0:
-                n, pos = count_at(pos)
+                n, pos = _u32(data, pos, order, numbers)
                 if n > len(data) - HEADER - pos:
                     raise struct.error("a sequence count beyond the end of the message")
             for _ in range(n):
