@@ -12,6 +12,7 @@ import argparse
 import importlib
 import os
 import sys
+from dataclasses import replace
 
 import numpy as np
 
@@ -20,6 +21,7 @@ from .common import (
     OneLineErrorParser,
     add_data_options,
     add_identify_options,
+    data_name,
     emit,
     format_model,
     load_data,
@@ -40,17 +42,18 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
     options = options_from_args(args)
     record = load_data(args.data, args)
-    options = with_reference(options, record)
+    options = replace(with_reference(options, record), runs=record.runs)
     try:
         result = identify(args.method, record.v, record.y, options)
     except IdentificationError as exc:  # name the data the method could not identify from
-        raise IdentificationError(f"{args.data}: {exc}") from None
+        raise IdentificationError(f"{data_name(args.data)}: {exc}") from None
     if args.refine:
         from ..identification.instrumental import refinement_input
         from ..identification.refinement import refine_result
 
-        result = refine_result(result, refinement_input(record.v, record.r), record.y)
-    doc = result.to_json(record.v, record.y)
+        result = refine_result(result, refinement_input(record.v, record.r), record.y, record.runs)
+    doc = result.to_json(record.v, record.y, record.runs)
+    doc["runs"] = record.run_count
     emit(doc, args.json, format_model(doc))
     return 0
 
@@ -81,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     p = sub.add_parser("identify", help="batch identification of a record")
-    p.add_argument("data", metavar="DATA", help="CSV, NPZ, .mcap or rosbag2 directory")
+    p.add_argument("data", metavar="DATA", nargs="+",
+                   help="CSV, NPZ, .mcap or rosbag2 directory; several: separate runs of one experiment")
     add_data_options(p, reference=True)
     add_identify_options(p)
     p.add_argument("--refine", action="store_true",
@@ -90,9 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_identify)
 
     p = sub.add_parser("diagnose", help="what the model gets wrong, why, and the extended model")
-    p.add_argument("data", metavar="DATA")
+    p.add_argument("data", metavar="DATA", nargs="+", help="record(s); several: separate runs")
     add_data_options(p, reference=True)
-    p.add_argument("--validation", default=None, metavar="DATA2", help="validation record (default: --split)")
+    p.add_argument("--validation", default=None, nargs="+", metavar="DATA2",
+                   help="validation record(s) (default: --split; with several runs, the last whole runs)")
     p.add_argument("--split", type=split_choice, default=0.7, metavar="F|auto",
                    help="estimation fraction of DATA (default 0.7: validation on the last 30 %%), or auto: an "
                         "estimation part whose input range covers the validation part's, where the record allows")

@@ -149,10 +149,14 @@ def is_bag(path: str) -> bool:
 
 
 
-def load_data(path: str, args: argparse.Namespace):
-    """The Record behind DATA: a CSV/NPZ file, or a bag with --input/--output or --config."""
-    from ..io.records import load_record
+def load_data(paths: str | list[str], args: argparse.Namespace):
+    """The Record behind DATA: a CSV/NPZ file, or a bag with --input/--output or --config; several
+    DATA are one record of runs (``io.records.concatenate_records``)."""
+    from ..io.records import concatenate_records, load_record
 
+    if not isinstance(paths, str):
+        return concatenate_records([load_data(path, args) for path in paths])
+    path = paths
     if is_bag(path):
         from ..io.bags import load_bag_record
 
@@ -161,6 +165,13 @@ def load_data(path: str, args: argparse.Namespace):
     if getattr(args, "config", None):
         raise UsageError(f"--config: a msg_config maps bag topics, but {path} is a CSV/NPZ file (use --input/--output)")
     return load_record(path, args.input or "u", args.output or "y", reference_name=getattr(args, "reference", None))
+
+
+def data_name(paths: str | list[str]) -> str:
+    """DATA in messages: the path, or 'A.csv (+7 more)'."""
+    if isinstance(paths, str):
+        return paths
+    return paths[0] if len(paths) == 1 else f"{paths[0]} (+{len(paths) - 1} more)"
 
 
 

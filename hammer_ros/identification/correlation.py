@@ -13,11 +13,26 @@ from __future__ import annotations
 
 import numpy as np
 
+from .runs import Runs
 
-def cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int) -> np.ndarray:
-    """phi_yx(tau) = E{y(k) x(k - tau)} for tau = -tau_max..tau_max (paper 000, eq. 8b)."""
+
+def cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, runs: Runs | None = None) -> np.ndarray:
+    """phi_yx(tau) = E{y(k) x(k - tau)} for tau = -tau_max..tau_max (paper 000, eq. 8b).
+
+    With ``runs`` (several experiments concatenated), the products of every run's own centres
+    k = start + tau_max .. end - 1 - tau_max are summed and divided by their total count: no
+    product pairs samples of two runs; runs shorter than 2 tau_max + 1 add nothing."""
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
+    if runs is not None and runs.count > 1:
+        if x.size != runs.total or y.size != runs.total:
+            raise ValueError(f"signals of {x.size} and {y.size} samples for runs of {runs.total}")
+        usable = [s for s in runs.slices() if s.stop - s.start > 2 * tau_max]
+        if not usable:
+            raise ValueError(f"need a run of at least 2 tau_max + 1 = {2 * tau_max + 1} samples")
+        counts = [s.stop - s.start - 2 * tau_max for s in usable]
+        total = sum(n * cross_correlation(x[s], y[s], tau_max) for n, s in zip(counts, usable))
+        return total / sum(counts)
     length = x.size
     if y.size != length:
         raise ValueError(f"signals differ in length ({x.size} vs {y.size})")
@@ -31,9 +46,9 @@ def cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int) -> np.ndarray:
     return out / n_products
 
 
-def auto_correlation(v: np.ndarray, tau_max: int) -> np.ndarray:
-    """phi_vv(tau) for tau = -tau_max..tau_max (paper 000, eq. 8a)."""
-    return cross_correlation(v, v, tau_max)
+def auto_correlation(v: np.ndarray, tau_max: int, runs: Runs | None = None) -> np.ndarray:
+    """phi_vv(tau) for tau = -tau_max..tau_max (paper 000, eq. 8a); ``runs`` as in ``cross_correlation``."""
+    return cross_correlation(v, v, tau_max, runs)
 
 
 def lags(tau_max: int) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..errors import UsageError
 from .result import IdentificationResult
+from .runs import Runs
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,7 @@ class IdentifyOptions:
     harmonic: tuple[Any, Any] | None = None  # (v, y) of the single-harmonic record
     feedback_partition: tuple[float, ...] | None = None  # PLLS: breakpoints d of the feedback map h(y)
     reference: np.ndarray | None = None  # closed loop: the external reference r, the instrument (``instrumental``)
+    runs: Runs | None = None  # separate experiments laid end to end (``runs``); None: one continuous record
 
 
 METHODS: dict[str, tuple[str, str, dict]] = {

@@ -32,6 +32,7 @@ import numpy as np
 
 from .linear import LinearModel
 from .result import IdentificationResult
+from .runs import Runs
 from .simulate import simulate_feedback, simulate_hammerstein_feedback
 from .simulation_error import refine, settling_samples, stabilised_denominator
 from .static_maps import MapParameters, PiecewiseLinearMap, PolynomialMap, map_parameters
@@ -123,15 +124,17 @@ def _parallel_path(result: IdentificationResult) -> LinearModel | None:
     return LinearModel(np.asarray(path["b"], dtype=float), np.concatenate([[1.0], np.asarray(path["a"], float)]))
 
 
-def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray,
+def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, runs: Runs | None = None,
                   max_iterations: int = MAX_ITERATIONS) -> IdentificationResult:
     """The estimate ``result`` refined on the simulation error of (v, y) (module docstring):
     a polynomial F is refined both as it is and as ``piecewise_linear_from`` it, and the one
-    with the smaller V is kept. The JSON keeps the method's name and adds ``refined``:
+    with the smaller V is kept. With ``runs``, every run is simulated from its own start
+    (``Runs.simulate``). The JSON keeps the method's name and adds ``refined``:
     {cost_start (V of the method's estimate), cost, samples_skipped, map}; Markov parameters
     are recomputed from the refined block, the method's gain figure is dropped (it describes
     the method's own estimate)."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
+    runs = Runs.one(v.size) if runs is None else runs
     skip = min(settling_samples(result.linear.poles), v.size // 5)
     starts = [result]
     if isinstance(result.nonlinearity, PolynomialMap):
@@ -142,7 +145,7 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray,
         theta0 = structure.pack()
 
         def simulate_theta(theta: np.ndarray, structure: _Structure = structure) -> np.ndarray:
-            return structure.simulator(theta)(v)
+            return runs.simulate(structure.simulator(theta), v)
 
         theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), skip)
         fits.append((_cost(simulate_theta(theta), y, skip), structure, theta))
@@ -150,7 +153,8 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray,
     linear, maps, path = structure.unpack(theta)
     extra = dict(result.extra)
     f = maps.get("nonlinearity")
-    extra["refined"] = {"cost_start": _cost(result.simulate(v), y, skip), "cost": cost, "samples_skipped": int(skip),
+    extra["refined"] = {"cost_start": _cost(runs.simulate(result.simulate, v), y, skip), "cost": cost,
+                        "samples_skipped": int(skip),
                         "map": None if f is None else type(f).__name__}
     if path is not None:
         extra["parallel_path"] = {**extra["parallel_path"], "a": path.a[1:].tolist(), "b": path.b.tolist(),

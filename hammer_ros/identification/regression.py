@@ -15,6 +15,7 @@ from numpy.lib.stride_tricks import as_strided
 from scipy.linalg import lapack
 
 from ..errors import IdentificationError
+from .runs import Runs
 
 QR_RANK_TOLERANCE = 1e-10  # least_squares_qr hands R with |r_ii| below this x max |r_jj| to the SVD
 
@@ -91,12 +92,15 @@ def largest_lag(order: int, mu: int = 1) -> int:
 
 
 def build_regression(
-    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, start: int | None = None
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, start: int | None = None,
+    runs: Runs | None = None,
 ) -> Regression:
     """Regression of the ARX (mu = 1) or mu-Markov model (paper 000, eqs. 1 and 3).
 
     ``v`` is the input (1-D) or a matrix of basis functions of it (N x p, for NLS and PLLS).
-    Rows are k = start..N-1 with ``start`` defaulting to the largest lag.
+    Rows are k = start..N-1 with ``start`` defaulting to the largest lag; with ``runs`` (several
+    experiments concatenated) only the rows whose lags stay in their own run, ``start`` samples
+    into it at least (``Runs.rows``).
     """
     y = np.asarray(y, dtype=float)
     v = np.asarray(v, dtype=float)
@@ -105,7 +109,7 @@ def build_regression(
     output_lags, input_lags = markov_lags(order, delay, mu)
     first = largest_lag(order, mu)
     start = first if start is None else max(start, first)
-    rows = np.arange(start, y.shape[0])
+    rows = np.arange(start, y.shape[0]) if runs is None or runs.count == 1 else runs.rows(first, first=start)
     if rows.size == 0:
         raise ValueError(f"too few samples ({y.shape[0]}) for lags up to {first}")
     phi = np.concatenate([-lagged_columns(y, output_lags, rows), lagged_columns(v, input_lags, rows)], axis=1)

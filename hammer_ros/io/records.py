@@ -10,21 +10,30 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UsageError
+from ..identification.runs import Runs, concatenate
+
+RUN_COLUMN = "run"  # CSV/NPZ column of run labels: consecutive rows with one label form a run
 
 
 @dataclass(frozen=True, eq=False)
 class Record:
-    """An input/output record: excitation v, response y, optional time stamps t (s) and the
-    external reference r of a closed loop (``--reference``, None when not given)."""
+    """An input/output record: excitation v, response y, optional time stamps t (s), the
+    external reference r of a closed loop (``--reference``, None when not given) and its runs
+    (separate experiments laid end to end; None: one continuous run)."""
 
     v: np.ndarray
     y: np.ndarray
     t: np.ndarray | None = None
     source: str = ""
     r: np.ndarray | None = None
+    runs: Runs | None = None
 
     def __len__(self) -> int:
         return self.v.size
+
+    @property
+    def run_count(self) -> int:
+        return 1 if self.runs is None else self.runs.count
 
     def split(self, fraction: float) -> tuple[Record, Record]:
         """(first fraction, rest), e.g. estimation and validation parts."""
@@ -137,7 +146,8 @@ def load_record(path: str | Path, input_name: str = "u", output_name: str = "y",
     for option, name in named:
         if name.startswith("/") and ":" in name:
             raise UsageError(f"{option}: {name!r} is a bag topic:field, but {path} is a CSV/NPZ file (give a column)")
-    columns = load_columns(path, (input_name, output_name, time_name) + ((reference_name,) if reference_name else ()))
+    columns = load_columns(path, (input_name, output_name, time_name, RUN_COLUMN)
+                           + ((reference_name,) if reference_name else ()))
     for option, name in named:
         if name not in columns:
             available = load_columns_names(path)
@@ -158,7 +168,30 @@ def load_record(path: str | Path, input_name: str = "u", output_name: str = "y",
             raise UsageError(f"{path}: column {name!r} has a non-finite or out-of-range value ({x[k]:g}) at sample {k} "
                              f"(|x| <= {MAX_ABS_SAMPLE:g})")
     t = columns.get(time_name)
-    return Record(v, y, t, str(path), r)
+    labels = columns.get(RUN_COLUMN)
+    if labels is not None and (labels.size != v.size or not np.all(np.isfinite(labels))):
+        raise UsageError(f"{path}: column {RUN_COLUMN!r} must hold a finite run label on every row")
+    runs = None if labels is None else Runs.from_labels(labels)
+    return Record(v, y, t, str(path), r, None if runs is None or runs.count == 1 else runs)
+
+
+def concatenate_records(records: list[Record]) -> Record:
+    """Several records (files, bags) as one record of runs: each record's runs, in order; nothing
+    is fitted or simulated across a boundary (``identification.runs``)."""
+    if len(records) == 1:
+        return records[0]
+    references = [rec.r for rec in records]
+    if any(r is None for r in references) and any(r is not None for r in references):
+        missing = next(rec.source for rec in records if rec.r is None)
+        raise UsageError(f"{missing}: no reference signal, but another record has one")
+    times = [rec.t for rec in records]
+    return Record(
+        np.concatenate([rec.v for rec in records]), np.concatenate([rec.y for rec in records]),
+        None if any(t is None for t in times) else np.concatenate(times),
+        ", ".join(rec.source for rec in records),
+        None if references[0] is None else np.concatenate(references),
+        concatenate([(rec.v, rec.runs) for rec in records]),
+    )
 
 
 def load_columns_names(path: str | Path) -> list[str]:

@@ -1,0 +1,110 @@
+"""Runs: separate experiments held in one concatenated record.
+
+Real recordings come as runs: several files, a ``run`` column, a bag whose streams stop for
+longer than ``max_gap``. They are held as concatenated arrays plus the first sample of every run.
+A run is a separate experiment, so nothing may use samples of two runs at once:
+
+- a regressor row k of lags up to L exists only where k - L is in k's run (``rows``);
+- a correlation product y(k) x(k - tau) only where both samples are in one run (``correlation.cross_correlation``
+  with ``runs``: the eq. 8 estimator of paper 000 summed over the runs' centres);
+- a free-run simulation starts again at every run (``simulate``), each run from its own initial
+  condition: the simulator's own convention, i.e. at rest at the run's first input value.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Runs:
+    """Run i holds samples ``starts[i]`` .. ``starts[i+1] - 1`` (the last run ends at ``total``)."""
+
+    starts: tuple[int, ...]
+    total: int
+
+    def __post_init__(self) -> None:
+        starts = self.starts
+        if not starts or starts[0] != 0 or any(b <= a for a, b in itertools.pairwise(starts)) or starts[-1] >= max(
+                self.total, 1):
+            raise ValueError(f"run starts {starts} do not cut a record of {self.total} samples into runs")
+
+    @classmethod
+    def one(cls, total: int) -> Runs:
+        """A single run: the whole record."""
+        return cls((0,), total)
+
+    @classmethod
+    def from_lengths(cls, lengths: Sequence[int]) -> Runs:
+        """Runs of the given lengths, concatenated in order (empty runs dropped)."""
+        lengths = [int(n) for n in lengths if int(n) > 0]
+        ends = np.cumsum(lengths)
+        return cls(tuple(int(s) for s in np.concatenate([[0], ends[:-1]])), int(ends[-1]) if lengths else 0)
+
+    @classmethod
+    def from_labels(cls, labels: np.ndarray) -> Runs:
+        """Consecutive samples with one label form a run (a ``run`` column); a label may come back later
+        as a new run."""
+        labels = np.asarray(labels)
+        changes = np.flatnonzero(labels[1:] != labels[:-1]) + 1
+        return cls(tuple(int(s) for s in np.concatenate([[0], changes])), int(labels.size))
+
+    @property
+    def count(self) -> int:
+        return len(self.starts)
+
+    @property
+    def ends(self) -> np.ndarray:
+        return np.append(np.asarray(self.starts[1:], dtype=int), self.total)
+
+    @property
+    def lengths(self) -> np.ndarray:
+        return self.ends - np.asarray(self.starts, dtype=int)
+
+    def slices(self) -> list[slice]:
+        return [slice(a, int(b)) for a, b in zip(self.starts, self.ends)]
+
+    def split(self, x: np.ndarray) -> list[np.ndarray]:
+        """x cut into its runs."""
+        x = np.asarray(x)
+        if x.shape[0] != self.total:
+            raise ValueError(f"a signal of {x.shape[0]} samples for runs of {self.total}")
+        return [x[s] for s in self.slices()]
+
+    def rows(self, back: int, ahead: int = 0, first: int = 0) -> np.ndarray:
+        """Sample indices k with k - back and k + ahead in k's run (and k - back >= its start + ``first``
+        - back, i.e. at least ``first`` samples into the run): the rows of a regression of lags up to
+        ``back``, the centres of a correlation of lags up to ``back`` = ``ahead``."""
+        lo = max(back, first)
+        return np.concatenate([np.arange(a + lo, int(b) - ahead) for a, b in zip(self.starts, self.ends)]
+                              + [np.zeros(0, dtype=int)]).astype(int)
+
+    def simulate(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray) -> np.ndarray:
+        """The free-run output of ``simulate`` started anew at every run (each from the simulator's own
+        initial condition: at rest at the run's first input), concatenated."""
+        if self.count == 1:
+            return simulate(v)
+        return np.concatenate([np.asarray(simulate(part), dtype=float) for part in self.split(v)])
+
+    def select(self, indices: Sequence[int]) -> tuple[np.ndarray, Runs]:
+        """(the sample indices, the runs) of the runs numbered ``indices``, in that order."""
+        parts = [np.arange(self.starts[i], int(self.ends[i])) for i in indices]
+        return np.concatenate(parts).astype(int), Runs.from_lengths([p.size for p in parts])
+
+    def describe(self) -> str:
+        """'8 runs of 600-1200 samples' (for messages)."""
+        lo, hi = int(self.lengths.min()), int(self.lengths.max())
+        size = f"{lo}" if lo == hi else f"{lo}-{hi}"
+        return f"{self.count} run{'s' if self.count > 1 else ''} of {size} samples"
+
+
+def concatenate(parts: Sequence[tuple[np.ndarray, Runs | None]]) -> Runs:
+    """The runs of records laid end to end (a record without runs is one run)."""
+    lengths: list[int] = []
+    for x, runs in parts:
+        lengths += list(runs.lengths) if runs is not None else [int(np.size(x))]
+    return Runs.from_lengths(lengths)
