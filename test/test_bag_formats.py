@@ -4,7 +4,8 @@ zstd compression of whole files (FILE) or of each message (MESSAGE), all written
 (or from its output with ``sqlite3``) from the saturation + resonant plant of
 ``make_sample_bags``. Each gives ``identify`` the samples and the model of the same data in the
 committed MCAP bag, poles near the truth; ``replay`` and ``fleet`` read a SQLite bag; broken
-bags are exit 2 with one line naming the file."""
+bags are exit 2 with one line naming the file, a damaged ``.db3`` gives the messages before the
+damage."""
 
 from __future__ import annotations
 
@@ -200,3 +201,21 @@ def test_a_broken_bag_is_exit_2_naming_the_file(bags, tmp_path, capsys, damage):
     assert captured.out == "" and len(lines) == 1, captured.err
     assert str(bag) in lines[0]
     assert re.search(message, lines[0]), lines[0]
+
+
+def test_a_damaged_db3_gives_the_messages_before_the_damage(bags, tmp_path, capsys):
+    """A zeroed page in the middle of the messages: the samples before it (those of the MCAP
+    bag), with a warning naming the file."""
+    bag = tmp_path / "bag"
+    shutil.copytree(bags["sqlite3"], bag)
+    db3 = bag / "sqlite3.db3"
+    data = bytearray(db3.read_bytes())
+    page = len(data) * 6 // 10 // 4096 * 4096
+    data[page : page + 4096] = bytes(4096)
+    db3.write_bytes(bytes(data))
+    record, expected = load_bag_record(bag, *SPECS[1::2]), load_bag_record(MCAP_BAG, *SPECS[1::2])
+    assert f"{db3}: unreadable (DatabaseError: database disk image is malformed); read the " in capsys.readouterr().err
+    kept = record.v.size
+    assert 1000 < kept < expected.v.size - 1000
+    np.testing.assert_array_equal(record.v, expected.v[:kept])
+    np.testing.assert_array_equal(record.y, expected.y[:kept])

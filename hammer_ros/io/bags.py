@@ -405,8 +405,8 @@ def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
 
     path = Path(file)
     if storage_of(path) == "sqlite3":
-        schemas, channels, counts, span = sqlite_index(path, readable_file(path), message_definition)
-        return FileIndex(path, schemas, channels, counts, (), span)
+        schemas, channels, counts, span, damage = sqlite_index(path, readable_file(path), message_definition)
+        return FileIndex(path, schemas, channels, counts, damage, span)
     summary = None
     try:
         with open(readable_file(path), "rb") as fh:

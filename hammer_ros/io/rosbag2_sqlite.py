@@ -30,12 +30,13 @@ def _reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
-def sqlite_index(file: Path, source: Path, definition: Callable[[str], str]
-                 ) -> tuple[dict[int, Any], dict[int, Any], dict[int, int], tuple[int, int] | None]:
-    """(schemas, channels, message counts by channel id, (first, last) timestamp or None) of the
-    ``.db3`` file ``file`` (read from ``source``, its decompressed copy or itself).
+def sqlite_index(file: Path, source: Path, definition: Callable[[str], str]) -> tuple[
+        dict[int, Any], dict[int, Any], dict[int, int], tuple[int, int] | None, tuple[str, ...]]:
+    """(schemas, channels, message counts by channel id, (first, last) timestamp or None, damage)
+    of the ``.db3`` file ``file`` (read from ``source``, its decompressed copy or itself).
     ``definition(type)``: a type's ``.msg`` definition, UsageError when unknown. A file that is
-    not a rosbag2 SQLite database is a UsageError naming ``file``."""
+    not a rosbag2 SQLite database is a UsageError naming ``file``; a messages table damaged part
+    way is counted up to the damage, which ``damage`` describes."""
     from mcap.records import Channel, Schema
 
     try:
@@ -43,14 +44,14 @@ def sqlite_index(file: Path, source: Path, definition: Callable[[str], str]
             tables = {row[0] for row in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
             if not {"topics", "messages"} <= tables:
                 raise UsageError(f"{file}: not a rosbag2 SQLite file (no topics and messages tables)")
-            topics = db.execute("SELECT id, name, type, serialization_format FROM topics").fetchall()
+            topics = db.execute("SELECT id, name, type, serialization_format FROM topics WHERE typeof(id) = "
+                                "'integer' AND typeof(name) = 'text' AND typeof(type) = 'text'").fetchall()
             stored = {}
             if "message_definitions" in tables:
                 stored = {name: text for name, encoding, text in db.execute(
                     "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions")
-                    if encoding == "ros2msg" and text}
-            rows = db.execute("SELECT topic_id, COUNT(*), MIN(timestamp), MAX(timestamp) FROM messages "
-                              "GROUP BY topic_id").fetchall()
+                    if encoding == "ros2msg" and isinstance(text, str) and text}
+            counts, span, damage = _message_counts(db)
     except sqlite3.DatabaseError as exc:
         raise UsageError(f"{file}: not a readable rosbag2 SQLite file ({_reason(exc)})") from None
     schemas: dict[int, Any] = {}
@@ -62,15 +63,34 @@ def sqlite_index(file: Path, source: Path, definition: Callable[[str], str]
                 text = definition(type_name)
             except UsageError:
                 text = ""  # no definition: ``_Decoders`` says so when the topic is read
-        schema_ids[type_name] = len(schemas) + 1
-        schemas[len(schemas) + 1] = Schema(id=len(schemas) + 1, name=type_name, encoding="ros2msg",
-                                           data=text.encode())
+        schema_id = schema_ids[type_name] = len(schemas) + 1
+        schemas[schema_id] = Schema(id=schema_id, name=type_name, encoding="ros2msg", data=text.encode())
     channels = {topic_id: Channel(id=topic_id, schema_id=schema_ids[type_name], topic=name,
-                                  message_encoding=serialization, metadata={})
+                                  message_encoding=str(serialization or ""), metadata={})
                 for topic_id, name, type_name, serialization in topics}
-    counts = {topic_id: count for topic_id, count, _, _ in rows}
-    span = (min(r[2] for r in rows), max(r[3] for r in rows)) if rows else None
-    return schemas, channels, counts, span
+    return schemas, channels, counts, span, damage
+
+
+def _message_counts(db: sqlite3.Connection) -> tuple[dict[int, int], tuple[int, int] | None, tuple[str, ...]]:
+    """(messages by topic id, (first, last) timestamp, damage): one aggregate query; when the
+    table is damaged, its rows one by one up to the damage."""
+    valid = "typeof(timestamp) = 'integer' AND typeof(data) = 'blob'"
+    try:
+        rows = db.execute(f"SELECT topic_id, COUNT(*), MIN(timestamp), MAX(timestamp) FROM messages WHERE {valid} "
+                          "GROUP BY topic_id").fetchall()
+        counts = {topic_id: count for topic_id, count, _, _ in rows}
+        return counts, (min(r[2] for r in rows), max(r[3] for r in rows)) if rows else None, ()
+    except sqlite3.DatabaseError as exc:
+        counts, first, last, read = {}, None, None, 0
+        try:
+            for topic_id, stamp in db.execute(f"SELECT topic_id, timestamp FROM messages WHERE {valid}"):
+                counts[topic_id] = counts.get(topic_id, 0) + 1
+                first, last = min(stamp, first or stamp), max(stamp, last or stamp)
+                read += 1
+        except sqlite3.DatabaseError:
+            pass
+        return counts, None if first is None else (first, last), (
+            f"messages table damaged ({_reason(exc)}); counted the {read} messages before it",)
 
 
 class SqliteScan:
@@ -90,14 +110,20 @@ class SqliteScan:
             return
         marks = ", ".join("?" * len(self.channel_ids))
         query = (f"SELECT id, topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) "
-                 "ORDER BY timestamp")
+                 "AND typeof(timestamp) = 'integer' AND typeof(data) = 'blob' ORDER BY timestamp")
+        group: list[Any] = []
         try:
             with closing(_connect(self.source)) as db:
-                cursor = db.execute(query, self.channel_ids)
-                while rows := cursor.fetchmany(BATCH_ROWS):
-                    group = [Message(channel_id=topic_id, sequence=row_id, log_time=stamp, publish_time=stamp,
-                                     data=data) for row_id, topic_id, stamp, data in rows]
-                    self.messages += len(group)
-                    yield group
+                for row_id, topic_id, stamp, data in db.execute(query, self.channel_ids):
+                    group.append(Message(channel_id=topic_id, sequence=row_id, log_time=stamp, publish_time=stamp,
+                                         data=data))
+                    if len(group) == BATCH_ROWS:
+                        self.messages += len(group)
+                        yield group
+                        group = []
         except sqlite3.DatabaseError as exc:
-            self.damage.append(f"unreadable ({_reason(exc)}); read the {self.messages} messages before it")
+            self.damage.append(f"unreadable ({_reason(exc)}); read the {self.messages + len(group)} messages "
+                               "before it")
+        self.messages += len(group)
+        if group:
+            yield group
