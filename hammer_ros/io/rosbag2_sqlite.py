@@ -72,31 +72,30 @@ def sqlite_index(file: Path, source: Path, definition: Callable[[str], str]) -> 
 
 
 def _message_counts(db: sqlite3.Connection) -> tuple[dict[int, int], tuple[int, int] | None, tuple[str, ...]]:
-    """(messages by topic id, (first, last) timestamp, damage): one aggregate query; when the
-    table is damaged, its rows one by one up to the damage."""
-    valid = "typeof(timestamp) = 'integer' AND typeof(data) = 'blob'"
+    """(message rows by topic id, (first, last) timestamp, damage): one aggregate query and the
+    ends of ``timestamp_idx``; when the table is damaged, its rows one by one up to the damage."""
     try:
-        rows = db.execute(f"SELECT topic_id, COUNT(*), MIN(timestamp), MAX(timestamp) FROM messages WHERE {valid} "
-                          "GROUP BY topic_id").fetchall()
-        counts = {topic_id: count for topic_id, count, _, _ in rows}
-        return counts, (min(r[2] for r in rows), max(r[3] for r in rows)) if rows else None, ()
+        counts = dict(db.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id").fetchall())
+        span = db.execute("SELECT (SELECT MIN(timestamp) FROM messages), (SELECT MAX(timestamp) FROM messages)"
+                          ).fetchone()
+        return counts, span if all(type(end) is int for end in span) else None, ()
     except sqlite3.DatabaseError as exc:
-        counts, first, last, read = {}, None, None, 0
+        counts, stamps = {}, []
         try:
-            for topic_id, stamp in db.execute(f"SELECT topic_id, timestamp FROM messages WHERE {valid}"):
+            for topic_id, stamp in db.execute("SELECT topic_id, timestamp FROM messages"):
                 counts[topic_id] = counts.get(topic_id, 0) + 1
-                first, last = min(stamp, first or stamp), max(stamp, last or stamp)
-                read += 1
+                stamps += [stamp] if type(stamp) is int else []
         except sqlite3.DatabaseError:
             pass
-        return counts, None if first is None else (first, last), (
-            f"messages table damaged ({_reason(exc)}); counted the {read} messages before it",)
+        return counts, (min(stamps), max(stamps)) if stamps else None, (
+            f"messages table damaged ({_reason(exc)}); counted the {sum(counts.values())} messages before it",)
 
 
 class SqliteScan:
     """The messages of ``channel_ids`` in one ``.db3`` file, in timestamp order: ``groups()``
     yields lists of MCAP ``Message`` records (sequence = the row id). An error of the database
-    part way ends the read; ``damage`` says after how many messages."""
+    part way ends the read; ``damage`` says after how many messages, and how many rows had no
+    integer timestamp or blob data (skipped)."""
 
     def __init__(self, file: Path, source: Path, channel_ids: list[int]) -> None:
         self.file, self.source, self.channel_ids = file, source, channel_ids
@@ -110,11 +109,15 @@ class SqliteScan:
             return
         marks = ", ".join("?" * len(self.channel_ids))
         query = (f"SELECT id, topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) "
-                 "AND typeof(timestamp) = 'integer' AND typeof(data) = 'blob' ORDER BY timestamp")
+                 "ORDER BY timestamp")
         group: list[Any] = []
+        malformed = 0
         try:
             with closing(_connect(self.source)) as db:
                 for row_id, topic_id, stamp, data in db.execute(query, self.channel_ids):
+                    if type(stamp) is not int or type(data) is not bytes:
+                        malformed += 1
+                        continue
                     group.append(Message(channel_id=topic_id, sequence=row_id, log_time=stamp, publish_time=stamp,
                                          data=data))
                     if len(group) == BATCH_ROWS:
@@ -125,5 +128,7 @@ class SqliteScan:
             self.damage.append(f"unreadable ({_reason(exc)}); read the {self.messages + len(group)} messages "
                                "before it")
         self.messages += len(group)
+        if malformed:
+            self.damage.append(f"{malformed} message row(s) without an integer timestamp and blob data skipped")
         if group:
             yield group
