@@ -41,7 +41,7 @@ from ..ros.field_path import FieldPath, extract_samples, message_stamp, message_
 from ..streaming.aligner import StreamAligner
 from ..streaming.config import EngineConfig, EngineStats
 from .records import Record
-from .rosbag2 import bag_files, bag_layout, decompress_message, readable_file, storage_of
+from .rosbag2 import BagLayout, decompress_message, read_layout, readable_file, storage_of
 from .rosbag2_sqlite import SqliteScan, sqlite_index
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
@@ -273,6 +273,19 @@ class BagReadStats:
     def report(self, path: str | Path) -> None:
         for line in self.warnings(path):
             warn(line)
+
+
+def bag_layout(path: str | Path) -> BagLayout:
+    """The files of a bag and their compression (``rosbag2.read_layout``), its note warned."""
+    layout = read_layout(path)
+    if layout.note:
+        warn(layout.note)
+    return layout
+
+
+def bag_files(path: str | Path) -> list[Path]:
+    """The files of a bag in reading order: a .mcap/.db3 file, or a rosbag2 directory's."""
+    return list(bag_layout(path).files)
 
 
 class _RecordScan:
@@ -516,9 +529,10 @@ class _Decoders:
             return decoder
         schema = self.schemas.get(channel.schema_id)
         where = f"{self.index.file}: topic {channel.topic}"
-        if schema is None or not schema.data:
-            raise UsageError(f"{where}: no message definition stored for it{f' ({schema.name})' if schema else ''} "
-                             "nor shipped with hammer_ros, cannot decode")
+        if schema is None:
+            raise UsageError(f"{where}: no schema stored for it, cannot decode")
+        if not schema.data:  # a .db3 without message definitions (Humble's) of a type hammer_ros does not ship
+            raise UsageError(f"{where}: no definition of {schema.name} in the bag nor installed, cannot decode")
         try:
             with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
                 decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)

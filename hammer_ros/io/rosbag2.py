@@ -27,10 +27,12 @@ COMPRESSION_MODES = ("", "NONE", "FILE", "MESSAGE")
 
 @dataclass(frozen=True)
 class BagLayout:
-    """A bag's files in reading order; ``message_compressed``: each message's data is zstd."""
+    """A bag's files in reading order; ``message_compressed``: each message's data is zstd;
+    ``note``: a warning for the user (how the files were found without a usable metadata.yaml)."""
 
     files: tuple[Path, ...]
     message_compressed: bool = False
+    note: str = ""
 
 
 def storage_of(file: Path) -> str:
@@ -43,18 +45,11 @@ def _is_bag_file(file: Path) -> bool:
     return file.name.lower().removesuffix(".zstd").endswith((".mcap", ".db3"))
 
 
-def bag_files(path: str | Path) -> list[Path]:
-    """The files of a bag in reading order (``bag_layout``)."""
-    return list(bag_layout(path).files)
-
-
-def bag_layout(path: str | Path) -> BagLayout:
+def read_layout(path: str | Path) -> BagLayout:
     """The files of a bag: the file itself, or those listed in a rosbag2 metadata.yaml (without
     a usable metadata.yaml, e.g. a recording that was killed: the directory's .mcap/.db3 files
-    in name order, with a warning). A missing file, an unknown storage or compression is a
+    in name order, with a note). A missing file, an unknown storage or compression is a
     UsageError naming the bag."""
-    from .bags import warn
-
     path = Path(path)
     if not path.exists():
         raise UsageError(f"{path}: no such bag (expected a .mcap file or a rosbag2 directory)")
@@ -67,8 +62,7 @@ def bag_layout(path: str | Path) -> BagLayout:
     if not meta.is_file():
         if not found:
             raise UsageError(f"{path}: not a rosbag2 directory (no metadata.yaml and no .mcap or .db3 files)")
-        warn(f"{path}: no metadata.yaml; reading its {len(found)} bag file(s) in name order")
-        return BagLayout(found)
+        return BagLayout(found, note=f"{path}: no metadata.yaml; reading its {len(found)} bag file(s) in name order")
     try:
         info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
         storage = info.get("storage_identifier") or "mcap"
@@ -78,8 +72,8 @@ def bag_layout(path: str | Path) -> BagLayout:
     except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
         if not found:
             raise UsageError(f"{meta}: not a rosbag2 metadata file (and no .mcap or .db3 files beside it)") from None
-        warn(f"{meta}: not a rosbag2 metadata file; reading the {len(found)} bag file(s) in name order")
-        return BagLayout(found)
+        return BagLayout(found, note=f"{meta}: not a rosbag2 metadata file; reading the {len(found)} bag file(s) "
+                                     "in name order")
     if storage not in STORAGES:
         raise UsageError(f"{path}: storage {storage!r} is not supported (mcap and sqlite3 are)")
     if mode not in COMPRESSION_MODES:
