@@ -2,8 +2,9 @@
 
 A bag is a ``.mcap`` file (also ``.db3``, ``.mcap.zstd``, ``.db3.zstd``) or a rosbag2 directory
 whose ``metadata.yaml`` (any version: Humble writes 5, Iron 6-8, Jazzy 9) lists its files in
-``relative_file_paths``, read in that order. A file's storage is its suffix: ``.db3`` is
-rosbag2's SQLite storage (``rosbag2_sqlite``), anything else MCAP. Compression (rosbag2's
+``relative_file_paths`` (a split bag: several; the reader merges their messages by time). A
+file's storage is its suffix: ``.db3`` is rosbag2's SQLite storage (``rosbag2_sqlite``),
+anything else MCAP. Compression (rosbag2's
 ``compression_format: zstd``): FILE mode compresses each file whole (``x.db3.zstd``: read
 through a decompressed copy in a temporary directory, removed at exit), MESSAGE mode each
 message's serialized bytes (``decompress_message``).
