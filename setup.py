@@ -47,6 +47,7 @@ setup(
         "matplotlib>=3.7",
         "mcap>=1.1",
         "mcap-ros2-support>=0.5",
+        "zstandard>=0.19",  # zstd-compressed rosbag2 files and messages
         "numba>=0.60",  # compiled sample-by-sample simulators (a pure-numpy fallback exists)
     ],
     extras_require={

@@ -77,8 +77,9 @@ def write_float64_bag(path: Path) -> None:
                           {"layout": layout, "data": y[k + 1 - BATCH : k + 1].tolist()}, t[k])
 
 
-def write_joint_state_bag(path: Path) -> None:
-    from rosbags.rosbag2 import StoragePlugin, Writer
+def write_joint_state_bag(path: Path, storage: str = "mcap", compression: str = "") -> None:
+    """``storage``: "mcap" or "sqlite3"; ``compression``: "", "file" or "message" (zstd)."""
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
@@ -88,7 +89,10 @@ def write_joint_state_bag(path: Path) -> None:
     position = np.cumsum(y) / RATE
     t = stamps_ns()
     latency = np.random.default_rng(5).integers(300_000, 2_000_000, SAMPLES)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+    writer = Writer(path, version=9, storage_plugin=StoragePlugin[storage.upper()])
+    if compression:
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with writer:
         cmd = writer.add_connection("/cmd", Float64.__msgtype__, typestore=store)
         joints = writer.add_connection("/joint_states", JointState.__msgtype__, typestore=store)
         for k in range(SAMPLES):

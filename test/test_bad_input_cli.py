@@ -215,13 +215,13 @@ def test_a_rosbag2_directory_without_metadata_is_read_with_a_warning(capsys, tmp
         shutil.copy(file, bare)
     spec = ["--input", "/cmd:data", "--output", "/joint_states:velocity[0]", "--order", "2", "--json"]
     code, out, err = run(capsys, "identify", bare, *spec)
-    assert code == 0 and warnings(err) == [f"hammer-ros: warning: {bare}: no metadata.yaml; reading its 1 .mcap "
+    assert code == 0 and warnings(err) == [f"hammer-ros: warning: {bare}: no metadata.yaml; reading its 1 bag "
                                            "file(s) in name order"]
     code, reference, _ = run(capsys, "identify", JOINT_BAG, *spec)
     assert json.loads(out)["poles"] == json.loads(reference)["poles"]
     (tmp_path / "empty").mkdir()
     assert_usage_error(capsys, ["identify", tmp_path / "empty", *spec[:4]],
-                       "not a rosbag2 directory (no metadata.yaml and no .mcap files)")
+                       "not a rosbag2 directory (no metadata.yaml and no .mcap or .db3 files)")
 
 
 def test_unknown_schemas_in_a_bag_are_skipped_unless_asked_for(capsys, tmp_path):

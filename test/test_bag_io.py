@@ -187,12 +187,12 @@ def test_bad_bags_are_usage_errors(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(UsageError, match="not a rosbag2 directory"):
         bag_files(tmp_path / "empty")
-    sqlite = tmp_path / "sqlite"
-    sqlite.mkdir()
-    (sqlite / "metadata.yaml").write_text(
-        "rosbag2_bagfile_information:\n  storage_identifier: sqlite3\n  relative_file_paths: [a.db3]\n")
-    with pytest.raises(UsageError, match="storage 'sqlite3' is not supported"):
-        bag_files(sqlite)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  storage_identifier: leveldb\n  relative_file_paths: [a.ldb]\n")
+    with pytest.raises(UsageError, match="storage 'leveldb' is not supported"):
+        bag_files(other)
     broken = tmp_path / "broken.mcap"
     broken.write_bytes(b"\x89MCAP0\r\n" + b"\0" * 40)
     with pytest.raises(UsageError, match=r"broken\.mcap: not a readable MCAP file"):

@@ -1,8 +1,10 @@
-"""MCAP bags in and out: ``.mcap`` files and rosbag2 directories (metadata.yaml + .mcap files).
+"""Bags in, MCAP out: ``.mcap`` files and rosbag2 directories (``rosbag2``: metadata.yaml, MCAP or
+SQLite files, split, zstd-compressed).
 
 Reading uses ``mcap`` + ``mcap_ros2`` (CDR decoding from the ``ros2msg`` schemas stored in the
-bag, so no ROS installation is needed). Only the topics asked for are decoded; other topics and
-unknown schemas are skipped. Files are read sequentially and fault-tolerantly (``_RecordScan``):
+bag, so no ROS installation is needed; a ``.db3`` file is read as MCAP records by
+``rosbag2_sqlite``). Only the topics asked for are decoded; other topics and unknown schemas
+are skipped. Files are read sequentially and fault-tolerantly (``_RecordScan``):
 a truncated or corrupt recording gives every valid message, with a warning saying where it
 broke; oversized or undecodable messages are skipped and counted (``BagReadStats``).
 A sample's stamp is the message's ``header.stamp`` when it has a
@@ -27,7 +29,7 @@ import struct
 import sys
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +41,8 @@ from ..ros.field_path import FieldPath, extract_samples, message_stamp, message_
 from ..streaming.aligner import StreamAligner
 from ..streaming.config import EngineConfig, EngineStats
 from .records import Record
+from .rosbag2 import BagLayout, decompress_message, read_layout, readable_file, storage_of
+from .rosbag2_sqlite import SqliteScan, sqlite_index
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "data" / "ros2_msgs"
 SCHEMA_SEPARATOR = "=" * 80
@@ -271,40 +275,17 @@ class BagReadStats:
             warn(line)
 
 
+def bag_layout(path: str | Path) -> BagLayout:
+    """The files of a bag and their compression (``rosbag2.read_layout``), its note warned."""
+    layout = read_layout(path)
+    if layout.note:
+        warn(layout.note)
+    return layout
+
+
 def bag_files(path: str | Path) -> list[Path]:
-    """The .mcap files of a bag: the file itself, or those listed in a rosbag2 metadata.yaml
-    (without a usable metadata.yaml, e.g. a recording that was killed: the directory's .mcap
-    files in name order, with a warning)."""
-    path = Path(path)
-    if not path.exists():
-        raise UsageError(f"{path}: no such bag (expected a .mcap file or a rosbag2 directory)")
-    if path.is_file():
-        if path.suffix.lower() != ".mcap":
-            raise UsageError(f"{path}: not a .mcap file")
-        return [path]
-    meta = path / "metadata.yaml"
-    found = sorted(p for p in path.glob("*.mcap") if p.is_file())
-    if not meta.is_file():
-        if not found:
-            raise UsageError(f"{path}: not a rosbag2 directory (no metadata.yaml and no .mcap files)")
-        warn(f"{path}: no metadata.yaml; reading its {len(found)} .mcap file(s) in name order")
-        return found
-    try:
-        info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
-        storage = info.get("storage_identifier", "mcap")
-        files = [path / f for f in info.get("relative_file_paths", [])]
-    except (yaml.YAMLError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
-        if not found:
-            raise UsageError(f"{meta}: not a rosbag2 metadata file (and no .mcap files beside it)") from None
-        warn(f"{meta}: not a rosbag2 metadata file; reading the {len(found)} .mcap file(s) in name order")
-        return found
-    if storage != "mcap":
-        raise UsageError(f"{path}: storage {storage!r} is not supported (record with -s mcap)")
-    files = files or found
-    missing = [f for f in files if not f.is_file()]
-    if not files or missing:
-        raise UsageError(f"{path}: bag file {missing[0] if missing else '*.mcap'} is missing")
-    return files
+    """The files of a bag in reading order: a .mcap/.db3 file, or a rosbag2 directory's."""
+    return list(bag_layout(path).files)
 
 
 class _RecordScan:
@@ -325,8 +306,9 @@ class _RecordScan:
         from mcap.records import Chunk, Header
         from mcap.stream_reader import StreamReader
 
-        size = self.file.stat().st_size
-        with open(self.file, "rb") as fh:
+        source = readable_file(self.file)
+        size = source.stat().st_size
+        with open(source, "rb") as fh:
             records = StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
             offset = 0
             while True:
@@ -435,9 +417,12 @@ def _file_index(file: str, mtime_ns: int, size: int) -> FileIndex:
     from mcap.records import Channel, Message, Schema
 
     path = Path(file)
+    if storage_of(path) == "sqlite3":
+        schemas, channels, counts, span, damage = sqlite_index(path, readable_file(path), message_definition)
+        return FileIndex(path, schemas, channels, counts, damage, span)
     summary = None
     try:
-        with open(path, "rb") as fh:
+        with open(readable_file(path), "rb") as fh:
             summary = SeekingReader(fh, record_size_limit=MAX_RECORD_BYTES).get_summary()
     except InvalidMagic:
         raise UsageError(f"{path}: not an MCAP file (wrong magic bytes)") from None
@@ -546,6 +531,8 @@ class _Decoders:
         where = f"{self.index.file}: topic {channel.topic}"
         if schema is None:
             raise UsageError(f"{where}: no schema stored for it, cannot decode")
+        if not schema.data:  # a .db3 without message definitions (Humble's) of a type hammer_ros does not ship
+            raise UsageError(f"{where}: no definition of {schema.name} in the bag nor installed, cannot decode")
         try:
             with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
                 decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)
@@ -593,10 +580,12 @@ def _bag_records(path: str | Path, topics: list[str], stats: BagReadStats, decod
     from mcap.records import Channel, Message, Schema
 
     wanted = set(topics)
+    layout = bag_layout(path)
 
     def one_file(file: Path):
         decoders = _Decoders(file_index(file))
-        scan = _RecordScan(file)
+        scan = _RecordScan(file) if storage_of(file) == "mcap" else SqliteScan(
+            file, readable_file(file), [c.id for c in decoders.channels.values() if c.topic in wanted])
         for group in scan.groups():
             messages = []
             for record in group:
@@ -610,6 +599,13 @@ def _bag_records(path: str | Path, topics: list[str], stats: BagReadStats, decod
                     decoders.schemas.setdefault(record.id, record)
             messages.sort(key=lambda m: m[0])
             for log_time, channel, record in messages:
+                if layout.message_compressed:
+                    try:
+                        record = replace(record, data=decompress_message(record.data, MAX_MESSAGE_BYTES + 1))
+                    except ValueError as exc:
+                        stats.undecodable += 1
+                        stats.note("undecodable", f"{channel.topic}: {exc}")
+                        continue
                 if len(record.data) > MAX_MESSAGE_BYTES:
                     stats.oversized += 1
                     stats.note("oversized", f"{channel.topic}: {len(record.data):,} bytes")
@@ -619,7 +615,7 @@ def _bag_records(path: str | Path, topics: list[str], stats: BagReadStats, decod
                     yield log_time, channel.topic, decoded
         stats.damage.extend(f"{file}: {d}" for d in scan.damage if f"{file}: {d}" not in stats.damage)
 
-    yield from heapq.merge(*(one_file(f) for f in bag_files(path)), key=lambda m: m[0])
+    yield from heapq.merge(*(one_file(f) for f in layout.files), key=lambda m: m[0])
 
 
 def iter_bag_messages(path: str | Path, topics: list[str],
