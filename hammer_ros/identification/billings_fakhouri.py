@@ -120,7 +120,7 @@ def filtered_powers(u: np.ndarray, linear: LinearModel, poly: int, runs: Runs | 
                    polynomial_basis(u, poly, constant=True), runs)
 
 
-def _check(u: np.ndarray, z: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.ndarray]:
+def _check(u: np.ndarray, z: np.ndarray, tau_max: int, runs: Runs | None = None) -> tuple[np.ndarray, np.ndarray]:
     u = np.asarray(u, dtype=float).ravel()
     z = np.asarray(z, dtype=float).ravel()
     if u.size != z.size:
@@ -131,8 +131,9 @@ def _check(u: np.ndarray, z: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.n
         raise IdentificationError("the input is constant: no correlation to identify from")
     if tau_max < 1:
         raise IdentificationError(f"--tau-max: must be >= 1 (got {tau_max})")
-    if u.size < 2 * tau_max + 1:
-        raise IdentificationError(f"--tau-max: {tau_max} needs >= {2 * tau_max + 1} samples, the record has {u.size}")
+    longest, what = (u.size, "the record") if runs is None else (int(runs.lengths.max()), "the longest run")
+    if longest < 2 * tau_max + 1:
+        raise IdentificationError(f"--tau-max: {tau_max} needs >= {2 * tau_max + 1} samples, {what} has {longest}")
     return u, z
 
 
@@ -195,7 +196,7 @@ def identify_hammerstein(
     recomputes phi_xz' on z - alpha H[r], r = the part of F'(u) uncorrelated with x (module
     notes). The result has H at unit static gain. ``runs``: ``hammerstein_steps``; the refinement
     simulates every run from rest."""
-    u, z = _check(u, z, tau_max)
+    u, z = _check(u, z, tau_max, runs)
     x = u - u.mean()
     fit = hammerstein_steps(u, z, z, order, delay, poly, tau_max, runs)
     for _ in range(refinements):
@@ -293,7 +294,7 @@ def identify_feedforward(
     if poly < 2:
         raise IdentificationError(f"--poly: the feedforward system needs a polynomial of degree >= 2 (got {poly}); "
                                   "with a linear F it is a linear system")
-    u, z = _check(u, z, tau_max)
+    u, z = _check(u, z, tau_max, runs)
     x, w = u - u.mean(), centred_square(u)
     fit = feedforward_steps(u, z, z, z, order, delay, poly, tau_max, runs)
     for _ in range(refinements):
