@@ -51,7 +51,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         from ..identification.instrumental import refinement_input
         from ..identification.refinement import refine_result
 
-        result = refine_result(result, refinement_input(record.v, record.r), record.y, record.runs)
+        result = refine_result(result, refinement_input(record.v, record.r, record.runs), record.y, record.runs)
     doc = result.to_json(record.v, record.y, record.runs)
     doc["runs"] = record.run_count
     emit(doc, args.json, format_model(doc))

@@ -66,6 +66,7 @@ from .era import eigensystem_realization
 from .linear import LinearModel
 from .regression import fit_regression, polynomial_basis, solve_least_squares
 from .result import IdentificationResult
+from .runs import Runs, per_run
 from .simulate import simulate_hammerstein, simulate_parallel
 from .static_maps import PolynomialMap
 
@@ -112,12 +113,14 @@ def fit_pulse_transfer_function(response: np.ndarray, excitation: np.ndarray, or
     return LinearModel(numerator, np.concatenate([[1.0], a]))
 
 
-def filtered_powers(u: np.ndarray, linear: LinearModel, poly: int) -> np.ndarray:
-    """The columns H[u^t], t = 0..poly, of eqs. (16) and (29) (with the constant t = 0)."""
-    return signal.lfilter(linear.b, linear.a, polynomial_basis(u, poly, constant=True), axis=0)
+def filtered_powers(u: np.ndarray, linear: LinearModel, poly: int, runs: Runs | None = None) -> np.ndarray:
+    """The columns H[u^t], t = 0..poly, of eqs. (16) and (29) (with the constant t = 0), each run
+    of ``runs`` filtered from rest."""
+    return per_run(lambda part: signal.lfilter(linear.b, linear.a, part, axis=0),
+                   polynomial_basis(u, poly, constant=True), runs)
 
 
-def _check(u: np.ndarray, z: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.ndarray]:
+def _check(u: np.ndarray, z: np.ndarray, tau_max: int, runs: Runs | None = None) -> tuple[np.ndarray, np.ndarray]:
     u = np.asarray(u, dtype=float).ravel()
     z = np.asarray(z, dtype=float).ravel()
     if u.size != z.size:
@@ -128,8 +131,9 @@ def _check(u: np.ndarray, z: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.n
         raise IdentificationError("the input is constant: no correlation to identify from")
     if tau_max < 1:
         raise IdentificationError(f"--tau-max: must be >= 1 (got {tau_max})")
-    if u.size < 2 * tau_max + 1:
-        raise IdentificationError(f"--tau-max: {tau_max} needs >= {2 * tau_max + 1} samples, the record has {u.size}")
+    longest, what = (u.size, "the record") if runs is None else (int(runs.lengths.max()), "the longest run")
+    if longest < 2 * tau_max + 1:
+        raise IdentificationError(f"--tau-max: {tau_max} needs >= {2 * tau_max + 1} samples, {what} has {longest}")
     return u, z
 
 
@@ -162,7 +166,7 @@ def uncorrelated_part(f: np.ndarray, regressor: np.ndarray) -> np.ndarray:
 
 
 def hammerstein_steps(u: np.ndarray, z: np.ndarray, correlated: np.ndarray, order: int, delay: int, poly: int,
-                      tau_max: int) -> HammersteinFit:
+                      tau_max: int, runs: Runs | None = None) -> HammersteinFit:
     """Paper 003 sec. 2 on a checked record, with phi_xz' computed on ``correlated`` (z, or
     its refinement): phi_xz'(s) = alpha h(s) (eqs. 6-13), Z{alpha h} fitted to it (eq. 14),
     then gamma_t' of
@@ -170,11 +174,12 @@ def hammerstein_steps(u: np.ndarray, z: np.ndarray, correlated: np.ndarray, orde
         z(i) = sum_t gamma_t' sum_j alpha h(j) u^t(i-j) + e(i)            (eqs. 15-16)
 
     by least squares (eq. 17), t = 0..poly (t = 0: the constant, see the module notes).
-    Returns the chain (alpha H, F') before normalisation."""
+    Returns the chain (alpha H, F') before normalisation. ``runs``: no correlation product
+    crosses a run's boundary, H[u^t] starts from rest in every run (the means stay the record's)."""
     x = u - u.mean()
-    phi_xz = cross_correlation(x, correlated - correlated.mean(), tau_max)
-    alpha_h = fit_pulse_transfer_function(phi_xz, auto_correlation(x, tau_max), order, delay)
-    return HammersteinFit(alpha_h, PolynomialMap(solve_least_squares(filtered_powers(u, alpha_h, poly), z)))
+    phi_xz = cross_correlation(x, correlated - correlated.mean(), tau_max, runs)
+    alpha_h = fit_pulse_transfer_function(phi_xz, auto_correlation(x, tau_max, runs), order, delay)
+    return HammersteinFit(alpha_h, PolynomialMap(solve_least_squares(filtered_powers(u, alpha_h, poly, runs), z)))
 
 
 def identify_hammerstein(
@@ -185,16 +190,18 @@ def identify_hammerstein(
     poly: int,
     tau_max: int = DEFAULT_TAU_MAX,
     refinements: int = REFINEMENTS,
+    runs: Runs | None = None,
 ) -> HammersteinFit:
     """The Hammerstein model of paper 003 sec. 2 (``hammerstein_steps``); each refinement
     recomputes phi_xz' on z - alpha H[r], r = the part of F'(u) uncorrelated with x (module
-    notes). The result has H at unit static gain."""
-    u, z = _check(u, z, tau_max)
+    notes). The result has H at unit static gain. ``runs``: ``hammerstein_steps``; the refinement
+    simulates every run from rest."""
+    u, z = _check(u, z, tau_max, runs)
     x = u - u.mean()
-    fit = hammerstein_steps(u, z, z, order, delay, poly, tau_max)
+    fit = hammerstein_steps(u, z, z, order, delay, poly, tau_max, runs)
     for _ in range(refinements):
-        correlated = z - fit.linear.simulate(uncorrelated_part(fit.nonlinearity(u), x))
-        fit = hammerstein_steps(u, z, correlated, order, delay, poly, tau_max)
+        correlated = z - per_run(fit.linear.simulate, uncorrelated_part(fit.nonlinearity(u), x), runs)
+        fit = hammerstein_steps(u, z, correlated, order, delay, poly, tau_max, runs)
     return HammersteinFit(*_unit_static_gain(fit.linear, fit.nonlinearity.coefficients))
 
 
@@ -230,19 +237,19 @@ def split_first_order_correlation(
 
 
 def feedforward_least_squares(
-    u: np.ndarray, z: np.ndarray, mu_h1: LinearModel, kappa_h2: LinearModel, poly: int
+    u: np.ndarray, z: np.ndarray, mu_h1: LinearModel, kappa_h2: LinearModel, poly: int, runs: Runs | None = None
 ) -> tuple[float, np.ndarray]:
     """Eqs. (29)-(30): (rho, omega_0'..omega_poly') minimising ||z - rho H3[u] - sum_t omega_t'
     kappa H2[u^t]||. The beta h2 part of h3 = mu h1 + beta h2 lies in the span of the column
     kappa H2[u], so the column mu H1[u] gives the same fit, with omega_1' then holding
     omega_1' + rho beta / kappa (eq. 31)."""
-    columns = np.column_stack([mu_h1.simulate(u), filtered_powers(u, kappa_h2, poly)])
+    columns = np.column_stack([per_run(mu_h1.simulate, u, runs), filtered_powers(u, kappa_h2, poly, runs)])
     theta = solve_least_squares(columns, z)
     return float(theta[0]), theta[1:]
 
 
 def feedforward_steps(u: np.ndarray, z: np.ndarray, first: np.ndarray, second: np.ndarray, order: int, delay: int,
-                      poly: int, tau_max: int) -> FeedforwardFit:
+                      poly: int, tau_max: int, runs: Runs | None = None) -> FeedforwardFit:
     """Paper 003 sec. 3, steps 1-4, on a checked record, with the first-order correlation
     (eq. 19) computed on ``first`` and the second-order one (eq. 21) on ``second`` (both z,
     or their refinements):
@@ -255,11 +262,11 @@ def feedforward_steps(u: np.ndarray, z: np.ndarray, first: np.ndarray, second: n
 
     Returns the branch as (kappa H2, F' = omega' with omega_1' = 0) before normalisation."""
     x = u - u.mean()
-    phi_xxz = second_order_cross_correlation(u, second, tau_max)
-    kappa_h2 = fit_pulse_transfer_function(phi_xxz, auto_correlation(centred_square(u), tau_max), order, delay)
-    phi_xz = cross_correlation(x, first - first.mean(), tau_max)
-    mu_h1 = split_first_order_correlation(phi_xz, auto_correlation(x, tau_max), kappa_h2, order)
-    rho, omega = feedforward_least_squares(u, z, mu_h1, kappa_h2, poly)
+    phi_xxz = second_order_cross_correlation(u, second, tau_max, runs)
+    kappa_h2 = fit_pulse_transfer_function(phi_xxz, auto_correlation(centred_square(u), tau_max, runs), order, delay)
+    phi_xz = cross_correlation(x, first - first.mean(), tau_max, runs)
+    mu_h1 = split_first_order_correlation(phi_xz, auto_correlation(x, tau_max, runs), kappa_h2, order)
+    rho, omega = feedforward_least_squares(u, z, mu_h1, kappa_h2, poly, runs)
     length = _response_length(mu_h1, kappa_h2)
     combined = rho * mu_h1.markov_parameters(length) + omega[1] * kappa_h2.markov_parameters(length)
     branch_input = PolynomialMap(np.concatenate([omega[:1], [0.0], omega[2:]]))
@@ -275,6 +282,7 @@ def identify_feedforward(
     poly: int,
     tau_max: int = DEFAULT_TAU_MAX,
     refinements: int = REFINEMENTS,
+    runs: Runs | None = None,
 ) -> FeedforwardFit:
     """The feedforward system of paper 003 sec. 3 (``feedforward_steps``), z = H1[u] + H2[F(u)],
     H1 and H2 of order ``order`` and relative degree ``delay``, F of degree ``poly`` >= 2.
@@ -282,18 +290,19 @@ def identify_feedforward(
     Each refinement recomputes the first-order correlation on z - kappa H2[r_x] and the
     second-order one on z - H1_hat[u] - kappa H2[r_w], r_x and r_w the parts of the branch
     input F'(u) uncorrelated with x and with x'^2 (module notes). The result has H2 at unit
-    static gain."""
+    static gain. ``runs``: as in ``identify_hammerstein``."""
     if poly < 2:
         raise IdentificationError(f"--poly: the feedforward system needs a polynomial of degree >= 2 (got {poly}); "
                                   "with a linear F it is a linear system")
-    u, z = _check(u, z, tau_max)
+    u, z = _check(u, z, tau_max, runs)
     x, w = u - u.mean(), centred_square(u)
-    fit = feedforward_steps(u, z, z, z, order, delay, poly, tau_max)
+    fit = feedforward_steps(u, z, z, z, order, delay, poly, tau_max, runs)
     for _ in range(refinements):
         branch_input = fit.nonlinearity(u)
-        first = z - fit.branch.simulate(uncorrelated_part(branch_input, x))
-        second = z - fit.parallel_path.simulate(u) - fit.branch.simulate(uncorrelated_part(branch_input, w))
-        fit = feedforward_steps(u, z, first, second, order, delay, poly, tau_max)
+        first = z - per_run(fit.branch.simulate, uncorrelated_part(branch_input, x), runs)
+        second = (z - per_run(fit.parallel_path.simulate, u, runs)
+                  - per_run(fit.branch.simulate, uncorrelated_part(branch_input, w), runs))
+        fit = feedforward_steps(u, z, first, second, order, delay, poly, tau_max, runs)
     branch, nonlinearity = _unit_static_gain(fit.branch, fit.nonlinearity.coefficients)
     return FeedforwardFit(branch, nonlinearity, fit.parallel_path, fit.rho)
 
@@ -318,13 +327,13 @@ def identify_bf(v: np.ndarray, y: np.ndarray, options, structure: str = "hammers
     tau_max = DEFAULT_TAU_MAX if options.tau_max is None else int(options.tau_max)
     extra: dict = {"tau_max": tau_max}
     if structure == "hammerstein":
-        fit = identify_hammerstein(v, y, options.order, options.delay, options.poly, tau_max)
+        fit = identify_hammerstein(v, y, options.order, options.delay, options.poly, tau_max, runs=options.runs)
         linear, nonlinearity = fit.linear, fit.nonlinearity
 
         def simulate(u: np.ndarray) -> np.ndarray:
             return simulate_hammerstein(u, nonlinearity, linear)
     else:
-        fit = identify_feedforward(v, y, options.order, options.delay, options.poly, tau_max)
+        fit = identify_feedforward(v, y, options.order, options.delay, options.poly, tau_max, runs=options.runs)
         linear, nonlinearity, simulate = fit.branch, fit.nonlinearity, fit.simulate
         extra["parallel_path"] = _model_json(fit.parallel_path)
     return IdentificationResult(

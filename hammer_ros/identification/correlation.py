@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .runs import Runs
+from .runs import Runs, several
 
 
 def cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, runs: Runs | None = None) -> np.ndarray:
@@ -24,7 +24,8 @@ def cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, runs: Runs | N
     product pairs samples of two runs; runs shorter than 2 tau_max + 1 add nothing."""
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
-    if runs is not None and runs.count > 1:
+    runs = several(runs)
+    if runs is not None:
         if x.size != runs.total or y.size != runs.total:
             raise ValueError(f"signals of {x.size} and {y.size} samples for runs of {runs.total}")
         usable = [s for s in runs.slices() if s.stop - s.start > 2 * tau_max]
@@ -64,17 +65,18 @@ def centred_square(x: np.ndarray) -> np.ndarray:
     return square - square.mean()
 
 
-def second_order_cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int) -> np.ndarray:
+def second_order_cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, runs: Runs | None = None) -> np.ndarray:
     """phi_xxy'(tau) = E{y'(k) x'^2(k - tau)}, tau = -tau_max..tau_max (paper 003, eq. 21),
     with y' = y - mean(y) and x' = x - mean(x) (the zero-mean Gaussian part of the input).
 
     Computed as ``cross_correlation(centred_square(x), y', tau_max)``, i.e. with the same
     eq. 8 estimator (N + 1 products per lag). Centring x'^2 changes nothing in expectation
     (E{y'} = 0) and makes auto_correlation(centred_square(x)) = 2 phi_xx^2 (eq. 25), the
-    "input" against which the second-order correlation is fitted.
+    "input" against which the second-order correlation is fitted. ``runs`` as in
+    ``cross_correlation`` (the means stay those of the whole record).
     """
     y = np.asarray(y, dtype=float)
-    return cross_correlation(centred_square(x), y - y.mean(), tau_max)
+    return cross_correlation(centred_square(x), y - y.mean(), tau_max, runs)
 
 
 def weighted_cross_correlation(x: np.ndarray, y: np.ndarray, tau_max: int, forgetting: float) -> np.ndarray:

@@ -51,6 +51,7 @@ from .regression import (
     polynomial_basis,
 )
 from .result import IdentificationResult
+from .runs import Runs, several
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
 from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, guarded, propagate, regression_covariance
@@ -100,10 +101,11 @@ def _check_record(v: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return v, y
 
 
-def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int, intercept: bool = False):
+def _least_squares_fit(y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int, intercept: bool = False,
+                       runs: Runs | None = None):
     """Solve the ARX (mu = 1) or mu-Markov regression (eqs. 1, 3) of y on v (1-D or a basis
-    matrix): returns (regression, a or alpha, input coefficients as lags x channels)."""
-    reg, theta = fit_regression(y, v, order, delay, mu, intercept)
+    matrix; rows within ``runs``): returns (regression, a or alpha, input coefficients as lags x channels)."""
+    reg, theta = fit_regression(y, v, order, delay, mu, intercept, runs)
     a, coefficients = reg.split(theta)
     return reg, a, coefficients
 
@@ -136,31 +138,34 @@ def default_tau_max(order: int, mu: int = 1) -> int:
 # --- standard least squares (sec. 3.3) -------------------------------------------------------
 
 
-def standard_least_squares(v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1) -> LinearEstimate:
+def standard_least_squares(v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1,
+                           runs: Runs | None = None) -> LinearEstimate:
     """Standard LS, paper 000 sec. 3.3: ignore F and fit the ARX (mu = 1, eq. 1) or mu-Markov
     (eq. 3) model to the raw pairs (v(k), y(k)). Its h_d_hat estimates C_F h_d only for
     mu-Markov with a long enough mu (the y-lags correlate with the unmodelled distortion)."""
     v, y = _check_record(v, y)
-    _, a, coefficients = _least_squares_fit(y, v, order, delay, mu)
+    _, a, coefficients = _least_squares_fit(y, v, order, delay, mu, runs=runs)
     return linear_estimate(a, coefficients[:, 0], order, delay, mu)
 
 
 # --- correlation least squares (sec. 3.1) ----------------------------------------------------
 
 
-def correlation_functions(v: np.ndarray, y: np.ndarray, tau_max: int) -> tuple[np.ndarray, np.ndarray]:
+def correlation_functions(v: np.ndarray, y: np.ndarray, tau_max: int,
+                          runs: Runs | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(phi_vv, phi_yv) for tau = -tau_max .. tau_max, paper 000 eq. (8) (Remark 2: the record
-    holds N + 2 tau_max + 1 samples, every lag averages the same N + 1 products)."""
+    holds N + 2 tau_max + 1 samples, every lag averages the same N + 1 products; with ``runs``
+    the products of every run's own centres)."""
     v, y = _check_record(v, y)
     try:
-        return auto_correlation(v, tau_max), cross_correlation(v, y, tau_max)
+        return auto_correlation(v, tau_max, runs), cross_correlation(v, y, tau_max, runs)
     except ValueError as exc:
         raise IdentificationError(f"tau_max {tau_max}: {exc}") from None
 
 
 def gain_correction(
     v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, poly: int = 3,
-    basis: np.ndarray | None = None, instrument_basis: np.ndarray | None = None,
+    basis: np.ndarray | None = None, instrument_basis: np.ndarray | None = None, runs: Runs | None = None,
 ) -> np.ndarray:
     """CLS step 2 (paper 000 sec. 3.1): gamma_1 .. gamma_p of
 
@@ -183,7 +188,9 @@ def gain_correction(
     ``instrument_basis`` (the same basis of a noise-free input, e.g. ``instrumental.reference_part``
     of v in closed loop): the regressors' instruments, filtered alike; theta then solves the IV
     system of ``instrumental.solve_instrumental`` instead of the least squares (the equation error
-    A_hat w is uncorrelated with them)."""
+    A_hat w is uncorrelated with them).
+
+    ``runs``: only the rows whose lags stay in their run (``step_two_rows``)."""
     try:
         output_lags, input_lags = markov_lags(order, delay, step1.mu)
     except ValueError as exc:
@@ -195,10 +202,21 @@ def gain_correction(
         raise IdentificationError(f"CLS step 2: {v.size} samples are too few for lags up to {first}")
     numerator = np.zeros(first + 1)
     numerator[input_lags] = step1.numerator
-    target = filtered_output(y, output_lags, step1.denominator)[first:]  # A_hat(q^-1) y
+    keep = step_two_rows(first, runs)
+    target = filtered_output(y, output_lags, step1.denominator)[first:][keep]  # A_hat(q^-1) y
+    if target.size <= basis.shape[1]:
+        raise IdentificationError(f"CLS step 2: {keep.size} rows within the runs are too few for lags up to {first}")
     if instrument_basis is not None:
-        return solve_instrumental(filtered_basis(basis, numerator), target, filtered_basis(instrument_basis, numerator))
-    return least_squares_qr(filtered_basis(basis, numerator), target)
+        return solve_instrumental(filtered_basis(basis, numerator)[keep], target,
+                                  filtered_basis(instrument_basis, numerator)[keep])
+    return least_squares_qr(filtered_basis(basis, numerator)[keep], target)
+
+
+def step_two_rows(first: int, runs: Runs | None) -> slice | np.ndarray:
+    """The rows of CLS step 2's arrays (sample k = first + row) whose lags up to ``first`` stay in
+    their run: all (a slice) without several runs, else ``Runs.rows(first) - first``."""
+    runs = several(runs)
+    return slice(None) if runs is None else runs.rows(first) - first
 
 
 def correlation_least_squares(
@@ -215,6 +233,7 @@ def correlation_least_squares(
 def correlation_least_squares_steps(
     phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1,
     poly: int = 3, partition: np.ndarray | None = None, instrument: np.ndarray | None = None,
+    runs: Runs | None = None,
 ) -> HammersteinEstimate:
     """CLS steps 1 and 2 (paper 000 sec. 3.1) from given correlation functions (indexed by
     tau + tau_max, e.g. the streaming engine's window sums) and the raw record for step 2.
@@ -242,15 +261,18 @@ def correlation_least_squares_steps(
     Closed loop (``instrumental``): given phi_vr, phi_yr (the correlations with the reference)
     as ``phi_vv``, ``phi_yv`` and the reference's part of v as ``instrument``, step 1 is the same
     regression and step 2 the IV solve with the basis of ``instrument`` as instruments.
+
+    ``runs`` (several experiments; the correlations then made with ``runs`` too): step 2's rows
+    stay within the runs (``gain_correction``).
     """
     v, y = _check_record(v, y)
     phi_vv, phi_yv = _check_record(phi_vv, phi_yv)
     _, a, coefficients = _least_squares_fit(phi_yv, phi_vv, order, delay, mu, intercept=True)
     step1 = linear_estimate(a, coefficients[:, 0], order, delay, mu)
     if partition is not None:
-        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float), instrument)
+        return piecewise_linear_step(v, y, step1, order, delay, np.asarray(partition, dtype=float), instrument, runs)
     gamma = gain_correction(v, y, step1, order, delay, poly, instrument_basis=None if instrument is None
-                            else polynomial_basis(instrument, poly, constant=True))
+                            else polynomial_basis(instrument, poly, constant=True), runs=runs)
     mean, slope, coefficients = float(v.sum() / v.size), 0.0, gamma.tolist()  # v.mean()
     for power in range(gamma.size - 1, 0, -1):  # F'(mean v) = sum_l l gamma_l mean^(l-1) by Horner's rule
         slope = slope * mean + power * coefficients[power]
@@ -262,7 +284,7 @@ def correlation_least_squares_steps(
 
 def piecewise_linear_step(
     v: np.ndarray, y: np.ndarray, step1: LinearEstimate, order: int, delay: int, partition: np.ndarray,
-    instrument: np.ndarray | None = None,
+    instrument: np.ndarray | None = None, runs: Runs | None = None,
 ) -> HammersteinEstimate:
     """CLS step 2 with a piecewise-linear F (an extension: paper 000's step 2 in the
     point-slope basis of paper 001, eqs. 8-11): F(v) = eta(v)^T m + kappa on ``partition``
@@ -277,7 +299,7 @@ def piecewise_linear_step(
     instruments = None if instrument is None else np.column_stack(
         [np.ones(v.size), point_slope_basis(instrument, partition, primary)])
     theta = gain_correction(v, y, step1, order, delay, basis=np.column_stack([np.ones(v.size), eta]),
-                            instrument_basis=instruments)
+                            instrument_basis=instruments, runs=runs)
     f = eta @ theta[1:] + theta[0]
     centred = v - v.mean()
     scale = float(centred @ (f - f.mean()) / (centred @ centred))
@@ -292,7 +314,7 @@ def piecewise_linear_step(
 
 
 def bai_two_stage_nls(
-    v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1, poly: int = 3
+    v: np.ndarray, y: np.ndarray, order: int, delay: int, mu: int = 1, poly: int = 3, runs: Runs | None = None
 ) -> HammersteinEstimate:
     """Bai's two-stage NLS (Bai 1998; paper 000 sec. 3.2, eqs. 9-12), monomials f_l = v^l.
 
@@ -308,7 +330,7 @@ def bai_two_stage_nls(
     one with b_hat gamma_hat^T = sigma_1 U_1 V_1^T, and it reproduces Table 1 (exact for F_1).
     """
     v, y = _check_record(v, y)
-    _, a, lumped = _least_squares_fit(y, polynomial_basis(v, poly), order, delay, mu)
+    _, a, lumped = _least_squares_fit(y, polynomial_basis(v, poly), order, delay, mu, runs=runs)
     return _nls_stage_two(a, lumped, order, delay, mu)
 
 
@@ -357,15 +379,16 @@ def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
     loop) the correlations are with the reference and step 2 is an IV solve (``instrumental``)."""
     mu = _mu(structure, options.mu)
     tau_max = default_tau_max(options.order, mu) if options.tau_max is None else options.tau_max
-    reference = check_reference(options.reference, np.size(v))
+    reference, runs = check_reference(options.reference, np.size(v)), options.runs
     if reference is None:
-        phi_vv, phi_yv = correlation_functions(v, y, tau_max)
+        phi_vv, phi_yv = correlation_functions(v, y, tau_max, runs)
         return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure)
     try:
-        phi_vr, phi_yr = (cross_correlation(reference, x, tau_max) for x in _check_record(v, y))
+        phi_vr, phi_yr = (cross_correlation(reference, x, tau_max, runs) for x in _check_record(v, y))
     except ValueError as exc:
         raise IdentificationError(f"tau_max {tau_max}: {exc}") from None
-    return cls_from_correlations(phi_vr, phi_yr, v, y, options, structure, instrument=reference_part(v, reference))
+    return cls_from_correlations(phi_vr, phi_yr, v, y, options, structure,
+                                 instrument=reference_part(v, reference, runs=runs))
 
 
 def cls_from_correlations(
@@ -374,17 +397,19 @@ def cls_from_correlations(
 ) -> IdentificationResult:
     """``identify_cls`` on given correlation functions (tau_max = (len - 1) / 2), e.g. the
     streaming engine's window sums; (v, y) is the raw window for step 2 (``instrument``: see
-    ``correlation_least_squares_steps``)."""
+    ``correlation_least_squares_steps``; ``options.runs``: the runs of (v, y), the correlations
+    made with them)."""
     mu = _mu(structure, options.mu)
     estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
-                                               options.partition, instrument)
+                                               options.partition, instrument, options.runs)
     extra = ({"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
              | ({"instrument": "reference"} if instrument is not None else {}))
     if instrument is not None:  # the bounds' influences are those of the correlations with v, not with r
         return _result(f"cls-{structure}", estimate, options.order, extra)
     partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
     uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition)))
+                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition),
+                                                  runs=options.runs))
     return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
 
 
@@ -417,7 +442,8 @@ def identify_nls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
     """``nls-arx`` / ``nls-markov``: ``bai_two_stage_nls`` with monomials up to ``poly``."""
     mu = _mu(structure, options.mu)
     v, y = _check_record(v, y)  # bai_two_stage_nls, its regression kept for the bounds
-    reg, a, lumped = _least_squares_fit(y, polynomial_basis(v, options.poly), options.order, options.delay, mu)
+    reg, a, lumped = _least_squares_fit(y, polynomial_basis(v, options.poly), options.order, options.delay, mu,
+                                        runs=options.runs)
     estimate = _nls_stage_two(a, lumped, options.order, options.delay, mu)
     uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, lumped.ravel()]), options.order,
                           options.delay, mu, _rank_one)
@@ -428,7 +454,7 @@ def identify_ls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") -
     """``ls-arx`` / ``ls-markov``: ``standard_least_squares`` (no nonlinearity)."""
     mu = _mu(structure, options.mu)
     v, y = _check_record(v, y)  # standard_least_squares, its regression kept for the bounds
-    reg, a, coefficients = _least_squares_fit(y, v, options.order, options.delay, mu)
+    reg, a, coefficients = _least_squares_fit(y, v, options.order, options.delay, mu, runs=options.runs)
     estimate = HammersteinEstimate(linear_estimate(a, coefficients[:, 0], options.order, options.delay, mu), None)
     uncertainty = guarded(_regression_uncertainty, reg, np.concatenate([a, coefficients.ravel()]), options.order,
                           options.delay, mu, lambda coefficients: (coefficients[:, 0], None))

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..errors import IdentificationError, UsageError
 from .regression import lagged_columns, solve_least_squares
+from .runs import Runs, several
 
 REFERENCE_LAGS = 60  # r(k) .. r(k - 60): the loop's response to r has decayed (poles |z| < 0.92)
 
@@ -46,39 +47,44 @@ def check_reference(reference: np.ndarray | None, length: int) -> np.ndarray | N
     return reference
 
 
-def projection_columns(signal: np.ndarray, lags: int) -> np.ndarray:
-    """[1, signal(k), ..., signal(k - lags)] per sample (zero before the record)."""
+def projection_columns(signal: np.ndarray, lags: int, runs: Runs | None = None) -> np.ndarray:
+    """[1, signal(k), ..., signal(k - lags)] per sample (zero before the record, or before each of ``runs``)."""
     signal = np.asarray(signal, dtype=float)
+    if several(runs) is not None:
+        return np.concatenate([projection_columns(part, lags) for part in runs.split(signal)])
     padded = np.concatenate([np.zeros(lags), signal])
     rows = np.arange(signal.size) + lags
     return np.column_stack([np.ones(signal.size), lagged_columns(padded, range(lags + 1), rows)])
 
 
-def projection_coefficients(x: np.ndarray, signal: np.ndarray, lags: int) -> np.ndarray:
-    """[c, s_0, ..., s_lags] of the least-squares fit of x by ``projection_columns(signal, lags)``."""
-    return solve_least_squares(projection_columns(signal, lags), np.asarray(x, dtype=float))
+def projection_coefficients(x: np.ndarray, signal: np.ndarray, lags: int, runs: Runs | None = None) -> np.ndarray:
+    """[c, s_0, ..., s_lags] of the least-squares fit of x by ``projection_columns(signal, lags, runs)``."""
+    return solve_least_squares(projection_columns(signal, lags, runs), np.asarray(x, dtype=float))
 
 
-def causal_projection(x: np.ndarray, signal: np.ndarray, lags: int) -> np.ndarray:
+def causal_projection(x: np.ndarray, signal: np.ndarray, lags: int, runs: Runs | None = None) -> np.ndarray:
     """c + sum_{i=0}^{lags} s_i signal(k - i): the least-squares projection of x on the present
-    and past of ``signal`` (zero before the record)."""
-    return projection_columns(signal, lags) @ projection_coefficients(x, signal, lags)
+    and past of ``signal`` (zero before the record, or before each of ``runs``: one projection
+    fitted to all runs, no lag reaching into the previous run)."""
+    columns = projection_columns(signal, lags, runs)
+    return columns @ solve_least_squares(columns, np.asarray(x, dtype=float))
 
 
-def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_LAGS) -> np.ndarray:
+def reference_part(x: np.ndarray, reference: np.ndarray, lags: int = REFERENCE_LAGS,
+                   runs: Runs | None = None) -> np.ndarray:
     """x_r, the ``causal_projection`` of x on the reference: the part of x the present and past
     reference explain, uncorrelated with the noise (the first stage of the two-stage method,
-    Forssell and Ljung 1999 sec. 6.2)."""
-    return causal_projection(x, reference, lags)
+    Forssell and Ljung 1999 sec. 6.2); with ``runs`` the reference's past stops at each run's start."""
+    return causal_projection(x, reference, lags, runs)
 
 
-def refinement_input(v: np.ndarray, reference: np.ndarray | None) -> np.ndarray:
+def refinement_input(v: np.ndarray, reference: np.ndarray | None, runs: Runs | None = None) -> np.ndarray:
     """The input the simulation-error refinement runs on: v in open loop; with a reference,
     v_r = ``reference_part(v, r)`` (the two-stage method, Forssell and Ljung 1999 sec. 6.2, Van
     den Hof and Schrama 1993): y = G F~(v_r) + e with e uncorrelated with v_r, so the refined
     linear block is consistent, and its map is F~(x) = E{F(v) | v_r = x}, F smoothed by the spread
     of the noise part of v (the input part the reference does not explain)."""
-    return v if reference is None else reference_part(v, reference)
+    return v if reference is None else reference_part(v, reference, runs=runs)
 
 
 def solve_instrumental(phi: np.ndarray, target: np.ndarray, instruments: np.ndarray) -> np.ndarray:

@@ -74,7 +74,8 @@ def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions
     if method in SUBSERIES_METHODS:  # no tractable covariance: subseries bounds (uncertainty.subseries_uncertainty)
         from .uncertainty import guarded, subseries_uncertainty
 
-        bounds = guarded(lambda: subseries_uncertainty(lambda a, b: function(a, b, options, **kwargs), v, y, result,
-                                                       with_map=method != "semiparametric"))
+        bounds = guarded(lambda: subseries_uncertainty(
+            lambda a, b, runs: function(a, b, replace(options, runs=runs), **kwargs), v, y, result,
+            with_map=method != "semiparametric", runs=options.runs))
         result = replace(result, uncertainty=bounds)
     return result

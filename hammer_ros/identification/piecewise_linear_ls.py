@@ -47,6 +47,7 @@ from .linear import LinearModel
 from .methods import IdentifyOptions
 from .regression import Regression, build_regression, lagged_columns, solve_least_squares
 from .result import IdentificationResult
+from .runs import Runs, per_run
 from .simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
 from .static_maps import PiecewiseLinearMap, map_parameters
 from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
@@ -272,13 +273,13 @@ def feedback_factors(theta_a: np.ndarray, b: np.ndarray, alpha: float) -> tuple[
 
 
 def _regression(
-    y: np.ndarray, u_channels: np.ndarray, order: int, delay: int, zeta: np.ndarray | None
+    y: np.ndarray, u_channels: np.ndarray, order: int, delay: int, zeta: np.ndarray | None, runs: Runs | None = None
 ) -> tuple[Regression, np.ndarray]:
     """Phi of eq. 23 (zeta None: [-Phi_y, Phi_eta, 1]) or of eqs. 47 and 66 ([-Phi_zeta, Phi_u or
     Phi_eta, -1]): the shared builder, with the output columns y(k-j) replaced by the output
-    basis zeta(y(k-j)) for the feedback structures."""
+    basis zeta(y(k-j)) for the feedback structures; rows within ``runs``."""
     try:
-        reg = build_regression(y, u_channels, order, delay)
+        reg = build_regression(y, u_channels, order, delay, runs=runs)
     except ValueError as exc:
         raise IdentificationError(f"PLLS: {exc}") from None
     n = reg.output_lags.size
@@ -304,6 +305,7 @@ def plls(
     instrumental: bool = False,
     uncertainty: bool = False,
     reference: np.ndarray | None = None,
+    runs: Runs | None = None,
 ) -> PllsEstimate:
     """PLLS of paper 001, sec. 4 (the numbered steps at the end of 4.1, 4.2 and 4.3).
 
@@ -318,6 +320,8 @@ def plls(
     ``partition`` c (input map f) and ``feedback_partition`` d (feedback map h) default to
     ``default_partition`` of u and y; the primary indices r and s to ``default_primary_index``.
     ``delay`` is the relative degree: b holds b_delay..b_n (the paper has delay = 1).
+    ``runs`` (several experiments laid end to end): regression rows, instruments and the IV passes'
+    simulations stay within each run, every run simulated from rest.
     Raises IdentificationError when an interval of a partition holds no sample.
     """
     if structure not in STRUCTURES:
@@ -338,11 +342,11 @@ def plls(
         s = default_primary_index(d) if feedback_primary_index is None else feedback_primary_index
         zeta = point_slope_basis(y, d, s)
 
-    reg, phi = _regression(y, eta if has_input_map else u, order, delay, zeta)
+    reg, phi = _regression(y, eta if has_input_map else u, order, delay, zeta, runs)
     if reference is not None:
         if structure != "hammerstein":
             raise UsageError("--reference: only for plls-hammerstein among the PLLS structures")
-        return _instrumental_plls(u, y, reg, phi, c, r, delay, beta, reference)
+        return _instrumental_plls(u, y, reg, phi, c, r, delay, beta, reference, runs)
     n, n_b = reg.output_lags.size, reg.input_lags.size
 
     def blocks(theta: np.ndarray) -> PllsEstimate:
@@ -369,7 +373,7 @@ def plls(
     z = None
     if instrumental and structure == "hammerstein":
         for _ in range(INSTRUMENT_PASSES):
-            z, theta = _instrumental_step(estimate, u, eta, order, delay, phi, reg.target, z, theta)
+            z, theta = _instrumental_step(estimate, u, eta, order, delay, phi, reg.target, z, theta, runs)
             estimate = blocks(theta)
     if not uncertainty:
         return estimate
@@ -379,7 +383,7 @@ def plls(
 
 def _instrumental_step(estimate: PllsEstimate, u: np.ndarray, eta: np.ndarray, order: int, delay: int,
                        phi: np.ndarray, target: np.ndarray, z: np.ndarray | None,
-                       theta: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+                       theta: np.ndarray, runs: Runs | None = None) -> tuple[np.ndarray | None, np.ndarray]:
     """One pass of instrumental variables (an extension of paper 001, whose least squares is
     biased by output noise: the equation error A(q) e is coloured and correlated with the
     y(k - j) columns). The instruments are the regressors with y replaced by the noise-free
@@ -389,8 +393,8 @@ def _instrumental_step(estimate: PllsEstimate, u: np.ndarray, eta: np.ndarray, o
     (z, theta) when the estimate is unstable or Z^T Phi is singular."""
     if not estimate.linear.is_stable():
         return z, theta
-    x_hat = simulate_hammerstein(u, estimate.nonlinearity, estimate.linear)
-    _, instruments = _regression(x_hat, eta, order, delay, None)
+    x_hat = per_run(lambda part: simulate_hammerstein(part, estimate.nonlinearity, estimate.linear), u, runs)
+    _, instruments = _regression(x_hat, eta, order, delay, None, runs)
     normal = instruments.T @ phi
     if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
         return z, theta
@@ -422,19 +426,20 @@ def _hammerstein_factors(theta: np.ndarray, reg: Regression, c, r, delay: int, b
 
 
 def _instrumental_plls(u, y, reg: Regression, phi: np.ndarray, c, r, delay: int, beta,
-                       reference: np.ndarray) -> PllsEstimate:
+                       reference: np.ndarray, runs: Runs | None = None) -> PllsEstimate:
     """PLLS-Hammerstein by (refined) instrumental variables, see ``plls``."""
-    u_r = reference_part(u, reference)
+    u_r = reference_part(u, reference, runs=runs)
     input_instruments = lagged_columns(point_slope_basis(u_r, c, r), reg.input_lags, reg.rows)
     n = reg.output_lags.size
 
     def instruments(output: np.ndarray) -> np.ndarray:
         return np.column_stack([-lagged_columns(output, reg.output_lags, reg.rows), input_instruments,
                                 np.ones(reg.rows.size)])
-    estimate = _hammerstein_factors(solve_instrumental(phi, reg.target, instruments(reference_part(y, reference))),
+    estimate = _hammerstein_factors(solve_instrumental(phi, reg.target, instruments(reference_part(y, reference,
+                                                                                                  runs=runs))),
                                     reg, c, r, delay, beta)
     if estimate.linear.is_stable():  # refined: the noise-free output of the first estimate
-        simulated = simulate_hammerstein(u_r, estimate.nonlinearity, estimate.linear)
+        simulated = per_run(lambda part: simulate_hammerstein(part, estimate.nonlinearity, estimate.linear), u_r, runs)
         if np.all(np.isfinite(simulated)) and np.std(simulated[n:]) > 0:
             estimate = _hammerstein_factors(solve_instrumental(phi, reg.target, instruments(simulated)),
                                             reg, c, r, delay, beta)
@@ -487,7 +492,7 @@ def identify_plls(
         v, y, options.order, options.delay, structure,
         partition=partition, feedback_partition=feedback_given, beta=beta, alpha=alpha, gamma=gamma,
         instrumental=options.reference is None, uncertainty=options.reference is None,
-        reference=check_reference(options.reference, np.size(v)),
+        reference=check_reference(options.reference, np.size(v)), runs=options.runs,
     )
     if est.feedback is None:
         def simulate(x: np.ndarray) -> np.ndarray:

@@ -32,7 +32,7 @@ import numpy as np
 
 from .linear import LinearModel
 from .result import IdentificationResult
-from .runs import Runs
+from .runs import Runs, rest_length
 from .simulate import simulate_feedback, simulate_hammerstein_feedback
 from .simulation_error import refine, settling_samples, stabilised_denominator
 from .static_maps import MapParameters, PiecewiseLinearMap, PolynomialMap, map_parameters
@@ -128,14 +128,15 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
                   max_iterations: int = MAX_ITERATIONS) -> IdentificationResult:
     """The estimate ``result`` refined on the simulation error of (v, y) (module docstring):
     a polynomial F is refined both as it is and as ``piecewise_linear_from`` it, and the one
-    with the smaller V is kept. With ``runs``, every run is simulated from its own start
-    (``Runs.simulate``). The JSON keeps the method's name and adds ``refined``:
+    with the smaller V is kept. With ``runs``, every run is simulated from rest at its first input
+    (``Runs.simulate``, settling as the method's estimate). The JSON keeps the method's name and adds ``refined``:
     {cost_start (V of the method's estimate), cost, samples_skipped, map}; Markov parameters
     are recomputed from the refined block, the method's gain figure is dropped (it describes
     the method's own estimate)."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     runs = Runs.one(v.size) if runs is None else runs
     skip = min(settling_samples(result.linear.poles), v.size // 5)
+    settle = rest_length(result.linear.poles)
     starts = [result]
     if isinstance(result.nonlinearity, PolynomialMap):
         starts.append(replace(result, nonlinearity=piecewise_linear_from(result.nonlinearity, v)))
@@ -145,7 +146,7 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
         theta0 = structure.pack()
 
         def simulate_theta(theta: np.ndarray, structure: _Structure = structure) -> np.ndarray:
-            return runs.simulate(structure.simulator(theta), v)
+            return runs.simulate(structure.simulator(theta), v, settle)
 
         theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), skip)
         fits.append((_cost(simulate_theta(theta), y, skip), structure, theta))
@@ -153,7 +154,7 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
     linear, maps, path = structure.unpack(theta)
     extra = dict(result.extra)
     f = maps.get("nonlinearity")
-    extra["refined"] = {"cost_start": _cost(runs.simulate(result.simulate, v), y, skip), "cost": cost,
+    extra["refined"] = {"cost_start": _cost(runs.simulate(result.simulate, v, settle), y, skip), "cost": cost,
                         "samples_skipped": int(skip),
                         "map": None if f is None else type(f).__name__}
     if path is not None:
@@ -168,19 +169,21 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
     return replace(result, linear=linear, simulate=structure.simulator(theta), gain=None, markov=markov,
                    nonlinearity=maps.get("nonlinearity", result.nonlinearity),
                    feedback_nonlinearity=maps.get("feedback_nonlinearity", result.feedback_nonlinearity),
-                   extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip))
+                   extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip,
+                                                    lambda simulate: runs.simulate(simulate, v, settle)))
 
 
 def _refined_uncertainty(structure: _Structure, theta: np.ndarray, v: np.ndarray, y: np.ndarray,
-                         skip: int) -> Uncertainty | None:
+                         skip: int, over_runs: Callable) -> Uncertainty | None:
     """The bounds of the prediction-error (output-error) estimate: with J = d y_sim / d theta (forward
     differences) and r = y - y_sim, Cov(theta) = (J^T J)^-1 S (J^T J)^-1, S the batch-means sum of
     the influences J_k r_k (``uncertainty.regression_covariance`` with Phi = J); for white output
     noise this is the Gauss-Newton sigma^2 (J^T J)^-1 (Ljung, *System Identification* 1999, eq. 9.18),
     and it stays right for coloured noise. Propagated through ``_Structure.unpack`` to the poles,
-    zeros and the input map's parameters. None when the Jacobian is not finite."""
+    zeros and the input map's parameters. None when the Jacobian is not finite. ``over_runs``
+    simulates a simulator of v over the record's runs (``refine_result``)."""
     def simulate(t: np.ndarray) -> np.ndarray:
-        return structure.simulator(t)(v)[skip:]
+        return over_runs(structure.simulator(t))[skip:]
 
     nominal = simulate(theta)
     steps = 1e-6 * np.maximum(np.abs(theta), 1e-3)

@@ -15,7 +15,7 @@ from numpy.lib.stride_tricks import as_strided
 from scipy.linalg import lapack
 
 from ..errors import IdentificationError
-from .runs import Runs
+from .runs import Runs, several
 
 QR_RANK_TOLERANCE = 1e-10  # least_squares_qr hands R with |r_ii| below this x max |r_jj| to the SVD
 
@@ -109,7 +109,8 @@ def build_regression(
     output_lags, input_lags = markov_lags(order, delay, mu)
     first = largest_lag(order, mu)
     start = first if start is None else max(start, first)
-    rows = np.arange(start, y.shape[0]) if runs is None or runs.count == 1 else runs.rows(first, first=start)
+    runs = several(runs)
+    rows = np.arange(start, y.shape[0]) if runs is None else runs.rows(first, first=start)
     if rows.size == 0:
         raise ValueError(f"too few samples ({y.shape[0]}) for lags up to {first}")
     phi = np.concatenate([-lagged_columns(y, output_lags, rows), lagged_columns(v, input_lags, rows)], axis=1)
@@ -155,9 +156,10 @@ def least_squares_qr(phi: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def fit_regression(
-    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, intercept: bool = False
+    y: np.ndarray, v: np.ndarray, order: int, delay: int, mu: int = 1, intercept: bool = False,
+    runs: Runs | None = None,
 ) -> tuple[Regression, np.ndarray]:
-    """Build the ARX / mu-Markov regression of y on v and solve it by least squares.
+    """Build the ARX / mu-Markov regression of y on v (rows within ``runs``) and solve it by least squares.
 
     With ``intercept`` a constant column is added and its coefficient dropped from the
     returned theta: the estimate of (a, b) is then invariant to constant offsets of y and v.
@@ -166,7 +168,7 @@ def fit_regression(
     correlation lags, when y and v are correlation functions - is too short for the model.
     """
     try:
-        reg = build_regression(y, v, order, delay, mu)
+        reg = build_regression(y, v, order, delay, mu, runs=runs)
     except ValueError as exc:
         raise IdentificationError(f"--order/--delay/--mu: {exc}") from None
     phi = np.concatenate([reg.phi, np.ones((reg.rows.size, 1))], axis=1) if intercept else reg.phi

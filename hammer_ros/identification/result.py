@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from .linear import LinearModel
-from .runs import Runs
+from .runs import Runs, rest_length
 
 
 def rms_error(y: np.ndarray, y_sim: np.ndarray) -> float:
@@ -75,7 +75,7 @@ class IdentificationResult:
 
     def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None) -> dict:
         """The ``identify --json`` document; fit_percent and rms when data (v, y) is given (with
-        ``runs``: every run simulated from its own start, ``Runs.simulate``)."""
+        ``runs``: every run simulated from rest at its first input, ``Runs.simulate``)."""
         doc: dict[str, Any] = {
             "method": self.method,
             "order": int(self.order if self.order is not None else self.linear.order),
@@ -100,7 +100,8 @@ class IdentificationResult:
         if self.uncertainty is not None:
             self.uncertainty.add_to(doc, self.nonlinearity)
         if v is not None and y is not None:
-            fit, rms = fit_and_rms(y, self.simulate(v) if runs is None else runs.simulate(self.simulate, v))
+            fit, rms = fit_and_rms(y, self.simulate(v) if runs is None
+                                   else runs.simulate(self.simulate, v, rest_length(self.linear.poles)))
             doc["fit_percent"], doc["rms"] = _finite_or_none(fit), _finite_or_none(rms)
         for key, value in self.extra.items():
             doc.setdefault(key, value)

@@ -8,7 +8,8 @@ A run is a separate experiment, so nothing may use samples of two runs at once:
 - a correlation product y(k) x(k - tau) only where both samples are in one run (``correlation.cross_correlation``
   with ``runs``: the eq. 8 estimator of paper 000 summed over the runs' centres);
 - a free-run simulation starts again at every run (``simulate``), each run from its own initial
-  condition: the simulator's own convention, i.e. at rest at the run's first input value.
+  condition: at rest at the run's first input value (``settle`` samples of that value simulated
+  first and dropped, ``simulation_error.preroll_simulate``; ``rest_length`` of the model's poles).
 """
 
 from __future__ import annotations
@@ -83,12 +84,22 @@ class Runs:
         return np.concatenate([np.arange(a + lo, int(b) - ahead) for a, b in zip(self.starts, self.ends)]
                               + [np.zeros(0, dtype=int)]).astype(int)
 
-    def simulate(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray) -> np.ndarray:
-        """The free-run output of ``simulate`` started anew at every run (each from the simulator's own
-        initial condition: at rest at the run's first input), concatenated."""
+    def simulate(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, settle: int = 0) -> np.ndarray:
+        """The free-run output of ``simulate`` started anew at every run, concatenated: each run after
+        ``settle`` samples of its first input value (dropped), i.e. at rest at its first input when
+        ``settle`` covers the model's settling time (``rest_length``); 0: the simulator's own initial
+        state. One run: ``simulate(v)`` as it is (the record's own convention)."""
         if self.count == 1:
             return simulate(v)
-        return np.concatenate([np.asarray(simulate(part), dtype=float) for part in self.split(v)])
+        from .simulation_error import preroll_simulate
+
+        return np.concatenate([np.asarray(preroll_simulate(simulate, part, settle), dtype=float)
+                               for part in self.split(v)])
+
+    def window(self, start: int, stop: int) -> Runs:
+        """The runs of samples start .. stop - 1 alone (a run cut by the window keeps its part)."""
+        cuts = [s - start for s in self.starts if start < s < stop]
+        return Runs((0, *cuts), stop - start)
 
     def select(self, indices: Sequence[int]) -> tuple[np.ndarray, Runs]:
         """(the sample indices, the runs) of the runs numbered ``indices``, in that order."""
@@ -100,6 +111,27 @@ class Runs:
         lo, hi = int(self.lengths.min()), int(self.lengths.max())
         size = f"{lo}" if lo == hi else f"{lo}-{hi}"
         return f"{self.count} run{'s' if self.count > 1 else ''} of {size} samples"
+
+
+def rest_length(poles: np.ndarray) -> int:
+    """Samples of a constant input after which a model with these poles is at rest (its slowest mode
+    decayed to 1e-9: three times ``simulation_error.settling_samples``' 0.1 %, at most 6000)."""
+    from .simulation_error import settling_samples
+
+    return 3 * settling_samples(np.asarray(poles))
+
+
+def several(runs: Runs | None) -> Runs | None:
+    """``runs`` when it holds more than one run, else None (one run is the continuous record:
+    every method then takes its path without runs, bit for bit)."""
+    return runs if runs is not None and runs.count > 1 else None
+
+
+def per_run(function: Callable[[np.ndarray], np.ndarray], x: np.ndarray, runs: Runs | None) -> np.ndarray:
+    """``function`` (a causal filter or simulator, at rest before its input) applied to every run of x
+    alone (along axis 0), concatenated; ``function(x)`` without several runs."""
+    runs = several(runs)
+    return function(x) if runs is None else runs.simulate(function, x)
 
 
 def concatenate(parts: Sequence[tuple[np.ndarray, Runs | None]]) -> Runs:

@@ -45,6 +45,7 @@ from .linear import LinearModel
 from .methods import IdentifyOptions
 from .regression import build_regression, delayed, solve_least_squares
 from .result import IdentificationResult
+from .runs import Runs, per_run, several
 from .static_maps import NonparametricMap
 
 SETTLING_TOLERANCE = 1e-4  # transients decay to this fraction before the steady state is used
@@ -79,7 +80,7 @@ class OutputErrorFit:
     parameters: int
 
 
-def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int) -> OutputErrorFit:
+def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int, runs: Runs | None = None) -> OutputErrorFit:
     """Output-error model y(k) = B(q^-1)/F(q^-1) u(k) + c + e(k) (paper 002, eq. 21, Example
     6.3), the alternative the paper names to RCO for the linear block (sec. III).
 
@@ -90,29 +91,36 @@ def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int) -> Ou
     sum e(k)^2 with the analytic gradient de/db_i = -q^-i u/F, de/df_j = q^-j y_hat/F,
     de/dc = -1. The initial state is not assumed zero (sec. III): the residuals of the first
     settling time of the ARX estimate are left out of the cost.
+
+    ``runs`` (several experiments laid end to end): the ARX start on rows within the runs, every
+    run simulated from rest and its own first settling time left out.
     """
     u0 = np.asarray(u, float) - np.mean(u)
     y = np.asarray(y, float)
-    regression = build_regression(y - np.mean(y), u0, order, delay)
+    runs = several(runs)
+    regression = build_regression(y - np.mean(y), u0, order, delay, runs=runs)
     a_arx, b_arx = regression.split(solve_least_squares(regression.phi, regression.target))
     lags = regression.input_lags
     p0 = np.concatenate([a_arx, b_arx[:, 0], [np.mean(y)]])
     start = settling_samples(_model(p0, order, lags))
-    burn_in = min(start or u0.size // 4, u0.size // 4)
+    shortest = u0.size if runs is None else int(runs.lengths.min())
+    burn_in = min(start or shortest // 4, shortest // 4)
+    used = slice(burn_in, None) if runs is None else runs.rows(burn_in)  # the samples in the cost
 
     def simulate(p):
         model = _model(p, order, lags)
-        return model, model.simulate(u0)
+        return model, per_run(model.simulate, u0, runs)
 
     def residuals(p):
-        return (y - p[-1] - simulate(p)[1])[burn_in:]
+        return (y - p[-1] - simulate(p)[1])[used]
 
     def jacobian(p):
         model, y_hat = simulate(p)
-        u_f = signal.lfilter([1.0], model.a, u0)
-        y_f = signal.lfilter([1.0], model.a, y_hat)
-        columns = [delayed(y_f, j) for j in range(1, order + 1)] + [-delayed(u_f, i) for i in lags]
-        return np.column_stack([*columns, -np.ones(u0.size)])[burn_in:]
+        u_f = per_run(lambda part: signal.lfilter([1.0], model.a, part), u0, runs)
+        y_f = per_run(lambda part: signal.lfilter([1.0], model.a, part), y_hat, runs)
+        columns = ([per_run(lambda part, j=j: delayed(part, j), y_f, runs) for j in range(1, order + 1)]
+                   + [-per_run(lambda part, i=i: delayed(part, i), u_f, runs) for i in lags])
+        return np.column_stack([*columns, -np.ones(u0.size)])[used]
 
     with np.errstate(over="ignore", invalid="ignore"):
         solution = least_squares(residuals, p0, jac=jacobian, method="lm", x_scale="jac")
@@ -122,9 +130,9 @@ def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int) -> Ou
             "DATA: the output-error fit of the linear block is unstable; try another --order or a longer record"
         )
     sse = float(np.sum(solution.fun**2))
-    sst = float(np.sum((y[burn_in:] - np.mean(y[burn_in:])) ** 2))
+    sst = float(np.sum((y[used] - np.mean(y[used])) ** 2))
     explained = 1.0 - sse / sst if sst > 0 else 0.0
-    return OutputErrorFit(model, explained, u0.size - burn_in, p0.size)
+    return OutputErrorFit(model, explained, solution.fun.size, p0.size)
 
 
 def _model(p: np.ndarray, order: int, lags: np.ndarray) -> LinearModel:
@@ -425,16 +433,17 @@ class SemiparametricEstimate:
 
 
 def semiparametric(
-    u: np.ndarray, y: np.ndarray, u_harmonic: np.ndarray, y_harmonic: np.ndarray, order: int, delay: int
+    u: np.ndarray, y: np.ndarray, u_harmonic: np.ndarray, y_harmonic: np.ndarray, order: int, delay: int,
+    runs: Runs | None = None,
 ) -> SemiparametricEstimate:
     """Paper 002, both steps: G_hat of the given order and relative degree l = ``delay`` from
-    the rich record (u, y), then H_hat from the single-harmonic record."""
+    the rich record (u, y) (of ``runs``, ``fit_output_error``), then H_hat from the single-harmonic record."""
     u_harmonic, y_harmonic = np.asarray(u_harmonic, float), np.asarray(y_harmonic, float)
     if u_harmonic.shape != y_harmonic.shape or u_harmonic.ndim != 1:
         raise IdentificationError("--harmonic: input and output must be 1-D and of equal length")
     if np.size(u) <= 4 * order + 2:
         raise IdentificationError(f"DATA: {np.size(u)} samples are too few for --order {order}")
-    fit = fit_output_error(u, y, order, delay)
+    fit = fit_output_error(u, y, order, delay, runs)
     if fit.explained_variance < EXPLAINED_VARIANCE_FACTOR * fit.parameters / fit.samples:
         raise IdentificationError(
             f"DATA: the linear block explains only {100 * fit.explained_variance:.2f} % of y (y is nearly "
@@ -470,7 +479,7 @@ def identify_semiparametric(v: np.ndarray, y: np.ndarray, options: IdentifyOptio
     """
     if options.harmonic is None:
         raise IdentificationError("--harmonic: the semiparametric method needs the single-harmonic record")
-    estimate = semiparametric(v, y, *options.harmonic, options.order, options.delay)
+    estimate = semiparametric(v, y, *options.harmonic, options.order, options.delay, options.runs)
     model, nonlinearity, shift = estimate.fit.model, estimate.nonlinearity, estimate.shift
     period = estimate.steady.period
     extra = {

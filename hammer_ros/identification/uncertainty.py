@@ -215,7 +215,7 @@ def _root_std(derivatives: np.ndarray) -> np.ndarray:
 
 def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int,
                     mu: int, basis: np.ndarray,
-                    normalised: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> Uncertainty:
+                    normalised: Callable[[np.ndarray], tuple[float, np.ndarray]], runs=None) -> Uncertainty:
     """The bounds of a CLS estimate (both steps) by batch means of its exact first-order influences.
 
     Step 1 solves X theta = z on the correlation lags, X and z built from the estimates of
@@ -237,10 +237,16 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     (s = F'(mean v), or the Bussgang gain of a piecewise-linear F) get the joint covariance.
 
     ``basis`` is step 2's basis of v (its first column the constant), ``normalised`` maps gamma to
-    (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``)."""
+    (s, the packed parameters of the unit map gamma / s) (``correlation_least_squares``).
+
+    ``runs`` (several experiments, the correlations made with them): w is formed in every run from
+    rest, the blocks cut the centres and step-2 rows that stay in their runs (``_run_blocks``)."""
     from scipy.linalg import lapack
 
     from .regression import build_regression, filtered_basis, filtered_output, fir_valid, largest_lag, markov_lags
+    from .runs import per_run, several
+
+    runs = several(runs)
 
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     tau_max = (np.size(phi_vv) - 1) // 2
@@ -256,23 +262,28 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     first = largest_lag(order, mu)
     numerator = np.zeros(first + 1)
     numerator[input_lags] = coefficients
-    filtered_y = filtered_output(y, output_lags, a)  # A_hat y: step 2's target from the largest lag on
-    w = filtered_y - fir_valid(np.concatenate([np.zeros(first), v])[:, None], numerator)[:, 0]  # - B_hat v
-    w -= w[first:].mean()
-
-    centres = v.size - 2 * tau_max
-    blocks = block_count(centres)
-    length = centres // blocks
+    filtered_y = per_run(lambda part: filtered_output(part, output_lags, a), y, runs)  # A_hat y: step 2's target
+    w = filtered_y - per_run(lambda part: fir_valid(np.concatenate([np.zeros(first), part])[:, None], numerator)[:, 0],
+                             v, runs)  # - B_hat v
     tau = reg.rows - tau_max  # the step-1 rows' lags, ascending
-    lo, hi = int(tau[0]), int(tau[-1])
-    span = hi - lo + 1
-    starts = tau_max + length * np.arange(blocks)
-    w_blocks = w[starts[:, None] + np.arange(length)]
-    v_blocks = v[(starts - hi)[:, None] + np.arange(length + span - 1)]
-    size = 1 << int(np.ceil(np.log2(length + span - 1)))
-    correlation = np.fft.irfft(np.conj(np.fft.rfft(w_blocks, size)) * np.fft.rfft(v_blocks, size), size)
-    r_blocks = correlation[:, span - 1 :: -1] / centres  # r_b(tau), tau = lo..hi
-    g1 = r_blocks @ pseudo_inverse.T * np.sqrt(centres / (blocks * length))  # the unused tail's share
+    if runs is None:
+        w -= w[first:].mean()
+        centres = v.size - 2 * tau_max
+        blocks = block_count(centres)
+        length = centres // blocks
+        lo, hi = int(tau[0]), int(tau[-1])
+        span = hi - lo + 1
+        starts = tau_max + length * np.arange(blocks)
+        w_blocks = w[starts[:, None] + np.arange(length)]
+        v_blocks = v[(starts - hi)[:, None] + np.arange(length + span - 1)]
+        size = 1 << int(np.ceil(np.log2(length + span - 1)))
+        correlation = np.fft.irfft(np.conj(np.fft.rfft(w_blocks, size)) * np.fft.rfft(v_blocks, size), size)
+        r_blocks = correlation[:, span - 1 :: -1] / centres  # r_b(tau), tau = lo..hi
+        g1 = r_blocks @ pseudo_inverse.T * np.sqrt(centres / (blocks * length))  # the unused tail's share
+        edges = np.concatenate([[0], starts[1:] - first])
+        step_two = np.arange(first, v.size)
+    else:
+        blocks, g1, step_two, edges = _run_blocks(runs, w, v, tau, tau_max, first, pseudo_inverse)
     cov1 = batch_means_covariance(g1[:, :-1])
 
     if mu == 1:
@@ -287,20 +298,23 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
         markov = np.concatenate([np.zeros(delay), coefficients[:mu]])
         poles_std, zeros_std = era_root_std(markov, order, delay, cov1[n : n + mu, n : n + mu])
 
-    # step 2 and its dependence on step 1
-    rows = v.size - first
-    target = filtered_y[first:]
+    # step 2 and its dependence on step 1, on the rows ``step_two`` (samples k, lags within the run)
+    target = filtered_y[step_two]
     regressors = filtered_basis(basis, numerator)  # step 2's regressors (``gain_correction``'s)
+    if runs is not None:
+        regressors = regressors[step_two - first]
     normal_inverse = np.linalg.inv(regressors.T @ regressors)
     gamma = normal_inverse @ (regressors.T @ target)  # step 2's estimate (a handful of columns: normal equations)
     residual = target - regressors @ gamma
     mapped = basis @ gamma
-    lagged_y = np.column_stack([y[first - lag : first - lag + rows] for lag in output_lags.tolist()])
-    shifts = first - input_lags  # R^T D: the y-lag columns directly, the many map-lag ones by correlations
-    products = np.column_stack([regressors.T @ lagged_y,
-                                -np.array([np.correlate(mapped, column, "valid")[shifts] for column in regressors.T])])
+    lagged_y = y[step_two[:, None] - output_lags[None, :]]
+    if runs is None:  # R^T D: the y-lag columns directly, the many map-lag ones by correlations
+        shifts = first - input_lags
+        map_products = np.array([np.correlate(mapped, column, "valid")[shifts] for column in regressors.T])
+    else:
+        map_products = regressors.T @ mapped[step_two[:, None] - input_lags[None, :]]
+    products = np.column_stack([regressors.T @ lagged_y, -map_products])
     sensitivity = normal_inverse @ products  # dgamma / d(step-1 coefficients), D as in the docstring
-    edges = np.concatenate([[0], starts[1:] - first])
     g2 = np.add.reduceat(regressors * residual[:, None], edges, axis=0) @ normal_inverse.T
     joint = np.column_stack([g1[:, n], g2 + g1[:, :-1] @ sensitivity.T])  # (h_d, gamma) per block
 
@@ -311,6 +325,24 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
     _, _, cov = propagate(gain_and_map, np.concatenate([[coefficients[0]], gamma]), batch_means_covariance(joint))
     how = f"cls: batch means over {blocks} blocks of both steps' influences, first-order propagation"
     return Uncertainty(poles_std, zeros_std, float(np.sqrt(cov[0, 0])), cov[1:, 1:], how)
+
+
+def _run_blocks(runs, w: np.ndarray, v: np.ndarray, tau: np.ndarray, tau_max: int, first: int,
+                pseudo_inverse: np.ndarray) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """``cls_uncertainty`` on several runs: (blocks, the step-1 influences g_b = X^+ r_b per block, the
+    step-2 rows (samples whose lags up to ``first`` stay in their run), the step-2 rows' block edges).
+    The centres of the correlations (``Runs.rows(tau_max, tau_max)``) are cut into contiguous blocks
+    of nearly equal counts; r_b(tau) = 1/N sum_{k in b} w(k) v(k - tau), N all centres, with w the
+    equation error centred over the step-2 rows."""
+    step_two = runs.rows(first)
+    w = w - w[step_two].mean()
+    centres = runs.rows(tau_max, tau_max)
+    blocks = block_count(centres.size)
+    parts = np.array_split(centres, blocks)
+    r_blocks = np.array([w[part] @ v[part[:, None] - tau[None, :]] for part in parts]) / centres.size
+    edges = np.searchsorted(step_two, [part[0] for part in parts])
+    edges[0] = 0
+    return blocks, r_blocks @ pseudo_inverse.T, step_two, edges
 
 
 def era_root_std(markov: np.ndarray, order: int, delay: int, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -390,10 +422,11 @@ SEGMENTS = 8  # subseries: contiguous segments of the record, each estimated alo
 
 
 def subseries_uncertainty(estimate: Callable, v: np.ndarray, y: np.ndarray, result, with_map: bool = True,
-                          segments: int = SEGMENTS) -> Uncertainty | None:
+                          segments: int = SEGMENTS, runs=None) -> Uncertainty | None:
     """The bounds of an estimator with no tractable covariance, by subseries (Carlstein, Ann. Stat. 14,
     1986; Politis, Romano & Wolf, *Subsampling* 1999): ``estimate`` (v, y) -> result on each of
-    ``segments`` contiguous segments of length L; for a sqrt(N)-consistent estimator
+    ``segments`` contiguous segments of length L (``estimate`` (v, y, runs) -> result: the segment's own
+    runs, ``Runs.window``, when the record is of several ``runs``); for a sqrt(N)-consistent estimator
     Cov(full) = Cov(segments) L / N. Roots are matched to ``result``'s. Short segments make it
     conservative (their own bias and transients add to the spread). None when fewer than half the
     segments give an estimate with the same number of poles and zeros."""
@@ -406,7 +439,7 @@ def subseries_uncertainty(estimate: Callable, v: np.ndarray, y: np.ndarray, resu
         part = slice(k * length, (k + 1) * length)
         try:
             with np.errstate(all="ignore"):
-                found = estimate(v[part], y[part])
+                found = estimate(v[part], y[part], None if runs is None else runs.window(part.start, part.stop))
             extra = [[found.gain]] if result.gain is not None else []
             if pack is not None:
                 extra.append(pack(found.nonlinearity))
