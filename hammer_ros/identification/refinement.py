@@ -14,7 +14,11 @@ feedback map h of the non-linear feedback models
 (paper 003 sec. 3). Levenberg-Marquardt from the estimate (``simulation_error.refine``);
 y_sim is simulated from rest like the method's own ``simulate``, and the first ``skip``
 samples (the slowest pole's settling, at most a fifth of the record) are left out of V.
-The estimate is returned unchanged when the refinement does not lower V.
+The estimate is returned unchanged when the refinement does not lower V. A second start, the
+equation-error ARX fit with an affine map (``affine.affine_start``), is refined beside the
+method's own, and the smaller V is kept (V of every refined start with the fewest samples
+skipped): on a step or a ramp the correlation methods' estimate can start the descent in a poor
+local minimum, and its slow poles would skip the step's transient.
 
 A polynomial F (CLS, NLS, Billings-Fakhouri: the papers' parametrisation for their regressions)
 is refined as the piecewise-linear map through its values at ``POLYNOMIAL_KNOTS`` quantiles of
@@ -30,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .affine import affine_start
 from .linear import LinearModel
 from .result import IdentificationResult
 from .runs import Runs
@@ -135,10 +140,13 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
     the method's own estimate)."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     runs = Runs.one(v.size) if runs is None else runs
-    skip = min(settling_samples(result.linear.poles), v.size // 5)
     starts = [result]
     if isinstance(result.nonlinearity, PolynomialMap):
         starts.append(replace(result, nonlinearity=piecewise_linear_from(result.nonlinearity, v)))
+    if (start := affine_start(result, v, y, runs)) is not None:  # a start that holds on steps too
+        if isinstance(start.nonlinearity, PolynomialMap):
+            start = replace(start, nonlinearity=piecewise_linear_from(start.nonlinearity, v))
+        starts.append(start)
     fits = []
     for start in starts:
         structure = _Structure(start, _parallel_path(start))
@@ -147,9 +155,13 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
         def simulate_theta(theta: np.ndarray, structure: _Structure = structure) -> np.ndarray:
             return runs.simulate(structure.simulator(theta), v)
 
-        theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), skip)
-        fits.append((_cost(simulate_theta(theta), y, skip), structure, theta))
-    cost, structure, theta = min(fits, key=lambda fit: fit[0])
+        start_skip = min(settling_samples(start.linear.poles), v.size // 5)
+        theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), start_skip)
+        fits.append((start_skip, simulate_theta(theta), structure, theta))
+    # compared on the fewest samples skipped: a slow start's long skip may hide a step's transient
+    skip = min(fit[0] for fit in fits)
+    cost, structure, theta = min(((_cost(y_sim, y, skip), structure, theta) for _, y_sim, structure, theta in fits),
+                                 key=lambda fit: fit[0])
     linear, maps, path = structure.unpack(theta)
     extra = dict(result.extra)
     f = maps.get("nonlinearity")
