@@ -34,7 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .affine import affine_start
+from .affine import affine_start, degraded_to_gain
 from .linear import LinearModel
 from .result import IdentificationResult
 from .runs import Runs
@@ -177,10 +177,11 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
         impulse = np.zeros(np.asarray(result.markov).size)
         impulse[0] = 1.0
         markov = linear.simulate(impulse)
-    return replace(result, linear=linear, simulate=structure.simulator(theta), gain=None, markov=markov,
-                   nonlinearity=maps.get("nonlinearity", result.nonlinearity),
-                   feedback_nonlinearity=maps.get("feedback_nonlinearity", result.feedback_nonlinearity),
-                   extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip))
+    refined = replace(result, linear=linear, simulate=structure.simulator(theta), gain=None, markov=markov,
+                      nonlinearity=maps.get("nonlinearity", result.nonlinearity),
+                      feedback_nonlinearity=maps.get("feedback_nonlinearity", result.feedback_nonlinearity),
+                      extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip))
+    return degraded_to_gain(refined, v)
 
 
 def _refined_uncertainty(structure: _Structure, theta: np.ndarray, v: np.ndarray, y: np.ndarray,

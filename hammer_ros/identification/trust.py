@@ -65,12 +65,12 @@ def untrusted(warnings: Iterable[ModelWarning]) -> ModelWarning | None:
     return next((w for w in warnings if w.code in UNTRUSTED), None)
 
 
-def fit_warnings(fit: float | None) -> tuple[ModelWarning, ...]:
-    """``poor_fit`` when the fit on the model's own data is below POOR_FIT_PERCENT (or not finite)."""
+def fit_warnings(fit: float | None, data: str = "its own data") -> tuple[ModelWarning, ...]:
+    """``poor_fit`` when the fit on ``data`` (the model's own) is below POOR_FIT_PERCENT (or not finite)."""
     if fit is not None and math.isfinite(fit) and fit >= POOR_FIT_PERCENT:
         return ()
     figure = "not finite" if fit is None or not math.isfinite(fit) else f"{fit:.1f} %"
-    return (ModelWarning("poor_fit", f"the model's fit on its own data is {figure}: it explains less of the "
+    return (ModelWarning("poor_fit", f"the model's fit on {data} is {figure}: it explains less of the "
                                      "output than its mean does"),)
 
 
@@ -164,7 +164,9 @@ def closed_loop_warning(value: float, bound: float) -> ModelWarning:
 
 
 def model_warnings(result: Any, v: np.ndarray, y: np.ndarray, fit: float | None) -> tuple[ModelWarning, ...]:
-    """The warnings of an ``IdentificationResult`` on its data (v, y) with its fit there."""
+    """The warnings of an ``IdentificationResult`` on its data (v, y) with its fit there (a refined
+    one, ``refinement``, is an output-error estimate: no ``input_not_white``)."""
     nonlinear = not result.method.startswith("ls-")
+    refined = "refined" in result.extra  # an output-error estimate: no assumption on the input's shape
     return (*fit_warnings(fit), *excitation_warnings(v, y, result.nonlinearity, nonlinear),
-            *whiteness_warnings(result.method, v))
+            *(() if refined else whiteness_warnings(result.method, v)))
