@@ -52,7 +52,8 @@ def diagnosis_warnings(d: Diagnosis, split: Split) -> tuple[ModelWarning, ...]:
     fails without a reference."""
     closed = next((e for e in d.evidence if e.test == CLOSED_LOOP_TEST), None)
     feedback = closed is not None and not closed.passed and split.r_est is None
-    return (*fit_warnings(d.baseline.fit_percent, "the validation data"), *excitation_warnings(split.v_est, split.y_est),
+    return (*fit_warnings(d.baseline.fit_percent, "the validation data"),
+            *excitation_warnings(split.v_est, split.y_est),
             *((closed_loop_warning(closed.value, closed.bound),) if feedback else ()))
 
 

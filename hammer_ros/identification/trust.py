@@ -14,8 +14,9 @@ Pure checks on arrays, each returning a tuple of ``ModelWarning(code, message)``
 - ``input_not_white``: a correlation method on an input that breaks its assumption. CLS (paper 000,
   sec. 3.1) needs a separable input (Gaussian, a sine), Billings-Fakhouri (paper 003) a white
   Gaussian one. Steps, ramps and trajectories are slowly varying (lag-1 autocorrelation
-  rho(1) > ``SLOW_RHO``) and far from Gaussian (|skewness| > ``MAX_SKEW`` or |excess kurtosis| >
-  ``MAX_EXCESS_KURTOSIS``: a step has two values, a ramp is uniform, excess kurtosis -1.2).
+  rho(1) > ``SLOW_RHO``) and either far from Gaussian (|skewness| > ``MAX_SKEW`` or |excess
+  kurtosis| > ``MAX_EXCESS_KURTOSIS``: a step has two values, a ramp is uniform, excess kurtosis
+  -1.2) or held (more than ``MAX_HELD`` of the samples equal to the one before: setpoints).
 - ``closed_loop``: the diagnosis' feedback test (``diagnosis.closed_loop``: the residual against
   the input's future innovations) fails.
 - ``irregular_sampling`` is made where the time stamps are read (``io.resample``).
@@ -39,6 +40,7 @@ SLOW_RHO = 0.9  # lag-1 autocorrelation above which an input varies slowly (step
 WHITE_RHO = 0.3  # |lag-1 autocorrelation| above which an input is not white (Billings-Fakhouri)
 MAX_SKEW = 0.5
 MAX_EXCESS_KURTOSIS = 1.0
+MAX_HELD = 0.5  # an input held at its previous value on more samples than this is a staircase of setpoints
 UNTRUSTED = ("poor_fit", "not_exciting")  # models with these are not published as confident ones
 SEPARABLE_INPUT_METHODS = ("cls-arx", "cls-markov")  # paper 000: a separable (e.g. Gaussian) input
 WHITE_GAUSSIAN_METHODS = ("bf-hammerstein", "bf-feedforward")  # paper 003: a white Gaussian input
@@ -118,27 +120,32 @@ def excitation_warnings(v: np.ndarray, y: np.ndarray, nonlinearity: Any = None,
     return tuple(out)
 
 
-def input_shape(v: np.ndarray) -> tuple[float, float, float]:
-    """(lag-1 autocorrelation, skewness, excess kurtosis) of the input (zeros for a constant)."""
+def input_shape(v: np.ndarray) -> tuple[float, float, float, float]:
+    """(lag-1 autocorrelation, skewness, excess kurtosis, fraction of samples held at the previous
+    value) of the input (zeros for a constant)."""
     x = np.asarray(v, dtype=float)
+    if x.size < 3:
+        return 0.0, 0.0, 0.0, 0.0
+    held = float(np.mean(x[1:] == x[:-1]))
     x = x - x.mean()
-    variance = float(x @ x) / max(x.size, 1)
-    if x.size < 3 or variance <= 0.0:
-        return 0.0, 0.0, 0.0
+    variance = float(x @ x) / x.size
+    if variance <= 0.0:
+        return 0.0, 0.0, 0.0, held
     rho = float(x[1:] @ x[:-1]) / (variance * x.size)
-    return rho, float(np.mean(x**3)) / variance**1.5, float(np.mean(x**4)) / variance**2 - 3.0
+    return rho, float(np.mean(x**3)) / variance**1.5, float(np.mean(x**4)) / variance**2 - 3.0, held
 
 
 def whiteness_warnings(method: str, v: np.ndarray) -> tuple[ModelWarning, ...]:
     """``input_not_white`` for a correlation method whose input assumption ``v`` breaks (module docstring)."""
-    rho, skew, kurtosis = input_shape(v)
+    rho, skew, kurtosis, held = input_shape(v)
     gaussian = abs(skew) <= MAX_SKEW and abs(kurtosis) <= MAX_EXCESS_KURTOSIS
-    shape = f"lag-1 autocorrelation {rho:.2f}, skewness {skew:.2f}, excess kurtosis {kurtosis:.2f}"
-    if method in SEPARABLE_INPUT_METHODS and rho > SLOW_RHO and not gaussian:
+    shape = (f"lag-1 autocorrelation {rho:.2f}, skewness {skew:.2f}, excess kurtosis {kurtosis:.2f}, "
+             f"{100 * held:.0f} % of samples held")
+    if method in SEPARABLE_INPUT_METHODS and rho > SLOW_RHO and not (gaussian and held <= MAX_HELD):
         return (ModelWarning("input_not_white", f"{method} assumes a separable (e.g. Gaussian) input; this one "
                                                 f"varies slowly and is not Gaussian ({shape}: steps, ramps or a "
                                                 f"trajectory): {FOR_STEPS}"),)
-    if method in WHITE_GAUSSIAN_METHODS and (abs(rho) > WHITE_RHO or not gaussian):
+    if method in WHITE_GAUSSIAN_METHODS and (abs(rho) > WHITE_RHO or not gaussian or held > MAX_HELD):
         return (ModelWarning("input_not_white", f"{method} assumes a white Gaussian input; this one is not "
                                                 f"({shape}): {FOR_STEPS}"),)
     return ()
