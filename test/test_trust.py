@@ -13,6 +13,7 @@ import pytest
 from scipy import signal
 
 from hammer_ros.errors import UsageError
+from hammer_ros.identification.closed_loop import random_loop_pair
 from hammer_ros.identification.runs import Runs
 from hammer_ros.io.records import load_record
 from hammer_ros.io.resample import uniform_grid
@@ -173,3 +174,18 @@ def test_engine_holds_back_a_model_of_a_still_output():
     outcome = engine.solve()
     assert outcome.status == "uncertain" and not outcome.ok
     assert "not_exciting" in outcome.reason or "poor_fit" in outcome.reason
+
+
+def test_closed_loop_is_suspected_and_the_reference_is_the_answer(tmp_path):
+    """A P loop around a cubic Hammerstein plant (the closed-loop study's records): identify without
+    the reference warns ``closed_loop`` and names --reference; the open-loop twin and the same
+    record with its reference do not."""
+    closed, open_loop = random_loop_pair(seed=4)
+    data = write_csv(tmp_path / "loop.csv", u=closed.u, y=closed.y, r=closed.r)
+    doc = identify(data, "--method", "plls-hammerstein", "--order", "3")
+    warning = next(w for w in doc["warnings"] if w["code"] == "closed_loop")
+    assert "--reference" in warning["message"]
+    assert "closed_loop" not in codes(identify(data, "--method", "plls-hammerstein", "--order", "3",
+                                               "--reference", "r"))
+    other = write_csv(tmp_path / "open.csv", u=open_loop.u, y=open_loop.y)
+    assert "closed_loop" not in codes(identify(other, "--method", "plls-hammerstein", "--order", "3"))

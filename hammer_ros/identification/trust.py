@@ -18,7 +18,7 @@ Pure checks on arrays, each returning a tuple of ``ModelWarning(code, message)``
   kurtosis| > ``MAX_EXCESS_KURTOSIS``: a step has two values, a ramp is uniform, excess kurtosis
   -1.2) or held (more than ``MAX_HELD`` of the samples equal to the one before: setpoints).
 - ``closed_loop``: the diagnosis' feedback test (``diagnosis.closed_loop``: the residual against
-  the input's future innovations) fails.
+  the input's future innovations) fails on an input that is a random process (not a trajectory).
 - ``irregular_sampling`` is made where the time stamps are read (``io.resample``).
 
 ``UNTRUSTED`` codes make the streaming engine hold a model back as ``uncertain``.
@@ -135,13 +135,20 @@ def input_shape(v: np.ndarray) -> tuple[float, float, float, float]:
     return rho, float(np.mean(x**3)) / variance**1.5, float(np.mean(x**4)) / variance**2 - 3.0, held
 
 
+def is_trajectory(v: np.ndarray) -> bool:
+    """Whether the input is a step, ramp or trajectory rather than a random process (module docstring)."""
+    rho, skew, kurtosis, held = input_shape(v)
+    gaussian = abs(skew) <= MAX_SKEW and abs(kurtosis) <= MAX_EXCESS_KURTOSIS
+    return rho > SLOW_RHO and not (gaussian and held <= MAX_HELD)
+
+
 def whiteness_warnings(method: str, v: np.ndarray) -> tuple[ModelWarning, ...]:
     """``input_not_white`` for a correlation method whose input assumption ``v`` breaks (module docstring)."""
     rho, skew, kurtosis, held = input_shape(v)
     gaussian = abs(skew) <= MAX_SKEW and abs(kurtosis) <= MAX_EXCESS_KURTOSIS
     shape = (f"lag-1 autocorrelation {rho:.2f}, skewness {skew:.2f}, excess kurtosis {kurtosis:.2f}, "
              f"{100 * held:.0f} % of samples held")
-    if method in SEPARABLE_INPUT_METHODS and rho > SLOW_RHO and not (gaussian and held <= MAX_HELD):
+    if method in SEPARABLE_INPUT_METHODS and is_trajectory(v):
         return (ModelWarning("input_not_white", f"{method} assumes a separable (e.g. Gaussian) input; this one "
                                                 f"varies slowly and is not Gaussian ({shape}: steps, ramps or a "
                                                 f"trajectory): {FOR_STEPS}"),)
@@ -152,10 +159,12 @@ def whiteness_warnings(method: str, v: np.ndarray) -> tuple[ModelWarning, ...]:
 
 
 def closed_loop_warnings(v: np.ndarray, residual: np.ndarray) -> tuple[ModelWarning, ...]:
-    """``closed_loop`` when the diagnosis' feedback test fails on the model's residual."""
+    """``closed_loop`` when the diagnosis' feedback test fails on the model's residual. Not for a
+    trajectory (``is_trajectory``): the test prewhitens the input as a random process, and a planned
+    motion's future follows from its past, so a model error alone would fail it."""
     from ..diagnosis.closed_loop import closed_loop_evidence
 
-    if np.asarray(v).size < 200 or not np.all(np.isfinite(residual)):
+    if np.asarray(v).size < 200 or not np.all(np.isfinite(residual)) or is_trajectory(v):
         return ()
     with np.errstate(all="ignore"):
         evidence = closed_loop_evidence(v, residual)
