@@ -12,9 +12,8 @@ degree on, the largest |b_i| fixed when a static map carries the scale), the inp
 feedback map h of the non-linear feedback models
 (paper 001 eq. 2: y = G[F(v) - h(y)]) and the parallel path of the feedforward system
 (paper 003 sec. 3). Levenberg-Marquardt from the estimate (``simulation_error.refine``);
-y_sim is simulated from rest at the first input value (``preroll_simulate``: a robot's record
-starts where it stands, not at zero), and the first ``skip`` samples (the slowest pole's
-settling, at most a fifth of the record) are left out of V.
+y_sim is simulated from rest like the method's own ``simulate``, and the first ``skip``
+samples (the slowest pole's settling, at most a fifth of the record) are left out of V.
 The estimate is returned unchanged when the refinement does not lower V. A second start, the
 equation-error ARX fit with an affine map (``affine.affine_start``), is refined beside the
 method's own, and the smaller V is kept (V of every refined start with the fewest samples
@@ -40,7 +39,7 @@ from .linear import LinearModel
 from .result import IdentificationResult
 from .runs import Runs
 from .simulate import simulate_feedback, simulate_hammerstein_feedback
-from .simulation_error import preroll_simulate, refine, settling_samples, stabilised_denominator
+from .simulation_error import refine, settling_samples, stabilised_denominator
 from .static_maps import MapParameters, PiecewiseLinearMap, PolynomialMap, map_parameters
 from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
 
@@ -102,18 +101,14 @@ class _Structure:
         linear, maps, path = self.unpack(theta)
         f, h = maps.get("nonlinearity"), maps.get("feedback_nonlinearity")
 
-        def simulate_from_zero(v: np.ndarray) -> np.ndarray:
+        def simulate(v: np.ndarray) -> np.ndarray:
+            v = np.asarray(v, dtype=float)
             if h is not None:
                 y = (simulate_hammerstein_feedback(v, f, h, linear) if f is not None
                      else simulate_feedback(v, h, linear))
             else:
                 y = linear.simulate(f(v) if f is not None else v)
             return y + path.simulate(v) if path is not None else y
-
-        preroll = settling_samples(np.concatenate([linear.poles, path.poles if path is not None else []]))
-
-        def simulate(v: np.ndarray) -> np.ndarray:
-            return preroll_simulate(simulate_from_zero, np.asarray(v, dtype=float), preroll)
 
         return simulate
 
