@@ -189,3 +189,14 @@ def test_closed_loop_is_suspected_and_the_reference_is_the_answer(tmp_path):
                                                "--reference", "r"))
     other = write_csv(tmp_path / "open.csv", u=open_loop.u, y=open_loop.y)
     assert "closed_loop" not in codes(identify(other, "--method", "plls-hammerstein", "--order", "3"))
+
+
+def test_replay_model_carries_warnings():
+    """The sample bag (paper 000's G1 with a cubic map, Gaussian input) through replay: the model JSON
+    has ``warnings``, empty."""
+    repo = Path(__file__).resolve().parents[1]
+    done = subprocess.run([HAMMER_ROS, "replay", str(repo / "bags" / "float64_cubic_g1.mcap"), "--config",
+                           str(repo / "msg_config" / "float64_cubic_g1.yaml"), "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout)["warnings"] == []
