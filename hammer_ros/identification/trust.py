@@ -101,6 +101,8 @@ def excitation_warnings(v: np.ndarray, y: np.ndarray, nonlinearity: Any = None,
     the map needs (``nonlinear_method``: the method fits a nonlinear map, so two levels are too few
     whatever map it returned)."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
+    if v.size == 0 or y.size == 0:
+        return ()
     out = []
     spread, step = float(np.std(y)), quantisation_step(y)
     if spread < QUANTISATION_STEPS * step or spread == 0.0:
