@@ -94,6 +94,7 @@ def test_model_poles_converge_to_the_plant(live):
     model = live.models[-1]
     assert model["method"] == "cls-markov" and model["order"] == 3
     assert set(model) >= {"poles", "zeros", "a", "b", "markov", "nonlinearity", "fit_percent", "rms"}
+    assert model["warnings"] == []  # a Gaussian input, a good fit: nothing to warn about
     assert root_rss_error(roots(truth["zeros"]), roots(model["zeros"])) < 0.1
     diagnostics = live.wait_for(lambda: [d for d in live.diagnostics[-1:] if d["level"] == 0],
                                 what="diagnostics of a successful solve")[0]

@@ -52,10 +52,25 @@ def cmd_identify(args: argparse.Namespace) -> int:
         from ..identification.refinement import refine_result
 
         result = refine_result(result, refinement_input(record.v, record.r, record.runs), record.y, record.runs)
-    doc = result.to_json(record.v, record.y, record.runs)
+    doc = result.to_json(record.v, record.y, record.runs, warnings=(*record.warnings, *_closed_loop(result, record)))
     doc["runs"] = record.run_count
     emit(doc, args.json, format_model(doc))
     return 0
+
+
+
+def _closed_loop(result, record) -> tuple:
+    """The ``closed_loop`` warning of a model identified without a reference (``trust.closed_loop_warnings``
+    on its free-run residual)."""
+    from ..identification.runs import Runs
+    from ..identification.trust import closed_loop_warnings
+
+    if record.r is not None:
+        return ()
+    runs = record.runs or Runs.one(len(record))
+    with np.errstate(all="ignore"):
+        residual = record.y - runs.simulate(result.simulate, record.v)
+    return closed_loop_warnings(record.v, residual)
 
 
 

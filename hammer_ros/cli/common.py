@@ -199,4 +199,10 @@ def format_model(doc: dict) -> str:
         lines.append(f"F(v)     {nl['kind']}: {detail}")
     if doc.get("fit_percent") is not None:
         lines.append(f"fit      {doc['fit_percent']:.2f} %   rms {doc['rms']:.4g}")
+    lines += format_warnings(doc.get("warnings", ()))
     return "\n".join(lines)
+
+
+def format_warnings(warnings) -> list[str]:
+    """One line per warning of a JSON document: 'warning  CODE: message'."""
+    return [f"warning  {w['code']}: {w['message']}" for w in warnings]

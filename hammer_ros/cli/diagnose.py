@@ -17,10 +17,18 @@ from ..diagnosis.diagnose import Diagnosis, diagnose
 from ..diagnosis.split import Split, check_split, split_record
 from ..errors import IdentificationError, UsageError
 from ..identification.instrumental import check_reference
+from ..identification.trust import (
+    ModelWarning,
+    closed_loop_warning,
+    excitation_warnings,
+    fit_warnings,
+    warnings_json,
+)
 
 
-def load_split(args: argparse.Namespace) -> Split:
-    """DATA split at --split, or DATA for estimation and --validation DATA2 for validation."""
+def load_split(args: argparse.Namespace) -> tuple[Split, tuple[ModelWarning, ...]]:
+    """DATA split at --split, or DATA for estimation and --validation DATA2 for validation; with what
+    loading the records had to say (``Record.warnings``)."""
     from .common import load_data
 
     record = load_data(args.data, args)
@@ -28,13 +36,25 @@ def load_split(args: argparse.Namespace) -> Split:
         validation = load_data(args.validation, args)
         split = Split(record.v, record.y, validation.v, validation.y, continuous=False)
         check_split(split)
+        warnings = (*record.warnings, *validation.warnings)
         if record.r is None:
-            return split
+            return split, warnings
         return replace(split, r_est=check_reference(record.r, record.v.size),
-                       r_val=check_reference(validation.r, validation.v.size))
+                       r_val=check_reference(validation.r, validation.v.size)), warnings
     if args.split == "auto":
-        return auto_split(record.v, record.y, record.r)
-    return split_record(record.v, record.y, args.split, record.r)
+        return auto_split(record.v, record.y, record.r), record.warnings
+    return split_record(record.v, record.y, args.split, record.r), record.warnings
+
+
+def diagnosis_warnings(d: Diagnosis, split: Split) -> tuple[ModelWarning, ...]:
+    """The diagnosis' reasons not to trust its models (``identification.trust``): the baseline's
+    validation fit, the estimation part's excitation, and the ``closed_loop`` evidence row when it
+    fails without a reference."""
+    closed = next((e for e in d.evidence if e.test == CLOSED_LOOP_TEST), None)
+    feedback = closed is not None and not closed.passed and split.r_est is None
+    return (*fit_warnings(d.baseline.fit_percent, "the validation data"),
+            *excitation_warnings(split.v_est, split.y_est),
+            *((closed_loop_warning(closed.value, closed.bound),) if feedback else ()))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -42,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--order: must be >= 1 (got {args.order})")
     if args.delay is not None and args.order is not None and args.delay > args.order:
         raise UsageError(f"--delay: relative degree {args.delay} exceeds --order {args.order}")
-    split = load_split(args)
+    split, record_warnings = load_split(args)
     try:
         result = diagnose(split, args.order, args.delay)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
@@ -55,9 +75,11 @@ def run(args: argparse.Namespace) -> int:
         except OSError as exc:
             raise UsageError(f"--report: cannot write {args.report} ({exc.strerror or exc})") from None
         print(f"report written to {args.report}", file=sys.stderr)
-    from .common import emit
+    from .common import emit, format_warnings
 
-    emit(result.diagnosis.to_json(), args.json, summary(result.diagnosis))
+    warnings = (*record_warnings, *diagnosis_warnings(result.diagnosis, split))
+    emit({**result.diagnosis.to_json(), "warnings": warnings_json(warnings)}, args.json,
+         "\n".join([summary(result.diagnosis), *format_warnings(warnings_json(warnings))]))
     return 0
 
 

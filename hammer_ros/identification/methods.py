@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import UsageError
+from .affine import degraded_to_gain
 from .result import IdentificationResult
 from .runs import Runs
 
@@ -70,7 +71,7 @@ def identify(method: str, v: np.ndarray, y: np.ndarray, options: IdentifyOptions
         raise UsageError(f"--reference: not for {method} (instrumented methods: {', '.join(REFERENCE_METHODS)})")
     module = importlib.import_module(f"{__package__}.{module_name}")
     v, y, function = np.asarray(v, float), np.asarray(y, float), getattr(module, function_name)
-    result = function(v, y, options, **kwargs)
+    result = degraded_to_gain(function(v, y, options, **kwargs), v)  # two input levels: an affine map
     if method in SUBSERIES_METHODS:  # no tractable covariance: subseries bounds (uncertainty.subseries_uncertainty)
         from .uncertainty import guarded, subseries_uncertainty
 

@@ -14,7 +14,11 @@ feedback map h of the non-linear feedback models
 (paper 003 sec. 3). Levenberg-Marquardt from the estimate (``simulation_error.refine``);
 y_sim is simulated from rest like the method's own ``simulate``, and the first ``skip``
 samples (the slowest pole's settling, at most a fifth of the record) are left out of V.
-The estimate is returned unchanged when the refinement does not lower V.
+The estimate is returned unchanged when the refinement does not lower V. A second start, the
+equation-error ARX fit with an affine map (``affine.affine_start``), is refined beside the
+method's own, and the smaller V is kept (V of every refined start with the fewest samples
+skipped): on a step or a ramp the correlation methods' estimate can start the descent in a poor
+local minimum, and its slow poles would skip the step's transient.
 
 A polynomial F (CLS, NLS, Billings-Fakhouri: the papers' parametrisation for their regressions)
 is refined as the piecewise-linear map through its values at ``POLYNOMIAL_KNOTS`` quantiles of
@@ -30,6 +34,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .affine import affine_start
 from .linear import LinearModel
 from .result import IdentificationResult
 from .runs import Runs, rest_length
@@ -135,27 +140,36 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
     the method's own estimate)."""
     v, y = np.asarray(v, dtype=float), np.asarray(y, dtype=float)
     runs = Runs.one(v.size) if runs is None else runs
-    skip = min(settling_samples(result.linear.poles), v.size // 5)
     settle = rest_length(result.linear.poles)
+    at_rest = runs.initial_states(result.simulate, v, y, settle)  # chosen once, with the method's estimate
+    knots = np.unique(v).size > 2  # two input levels: the map stays affine (``affine.degraded_to_gain``)
     starts = [result]
-    if isinstance(result.nonlinearity, PolynomialMap):
+    if knots and isinstance(result.nonlinearity, PolynomialMap):
         starts.append(replace(result, nonlinearity=piecewise_linear_from(result.nonlinearity, v)))
+    if (start := affine_start(result, v, y, runs)) is not None:  # a start that holds on steps too
+        if knots and isinstance(start.nonlinearity, PolynomialMap):
+            start = replace(start, nonlinearity=piecewise_linear_from(start.nonlinearity, v))
+        starts.append(start)
     fits = []
     for start in starts:
         structure = _Structure(start, _parallel_path(start))
         theta0 = structure.pack()
 
         def simulate_theta(theta: np.ndarray, structure: _Structure = structure) -> np.ndarray:
-            return runs.simulate(structure.simulator(theta), v, settle)
+            return runs.simulate(structure.simulator(theta), v, settle, at_rest)
 
-        theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), skip)
-        fits.append((_cost(simulate_theta(theta), y, skip), structure, theta))
-    cost, structure, theta = min(fits, key=lambda fit: fit[0])
+        start_skip = min(settling_samples(start.linear.poles), v.size // 5)
+        theta = refine(simulate_theta, theta0, y, max_iterations * (theta0.size + 1), start_skip)
+        fits.append((start_skip, simulate_theta(theta), structure, theta))
+    # compared on the fewest samples skipped: a slow start's long skip may hide a step's transient
+    skip = min(fit[0] for fit in fits)
+    cost, structure, theta = min(((_cost(y_sim, y, skip), structure, theta) for _, y_sim, structure, theta in fits),
+                                 key=lambda fit: fit[0])
     linear, maps, path = structure.unpack(theta)
     extra = dict(result.extra)
     f = maps.get("nonlinearity")
-    extra["refined"] = {"cost_start": _cost(runs.simulate(result.simulate, v, settle), y, skip), "cost": cost,
-                        "samples_skipped": int(skip),
+    extra["refined"] = {"cost_start": _cost(runs.simulate(result.simulate, v, settle, at_rest), y, skip),
+                        "cost": cost, "samples_skipped": int(skip),
                         "map": None if f is None else type(f).__name__}
     if path is not None:
         extra["parallel_path"] = {**extra["parallel_path"], "a": path.a[1:].tolist(), "b": path.b.tolist(),
@@ -170,7 +184,7 @@ def refine_result(result: IdentificationResult, v: np.ndarray, y: np.ndarray, ru
                    nonlinearity=maps.get("nonlinearity", result.nonlinearity),
                    feedback_nonlinearity=maps.get("feedback_nonlinearity", result.feedback_nonlinearity),
                    extra=extra, uncertainty=guarded(_refined_uncertainty, structure, theta, v, y, skip,
-                                                    lambda simulate: runs.simulate(simulate, v, settle)))
+                                                    lambda simulate: runs.simulate(simulate, v, settle, at_rest)))
 
 
 def _refined_uncertainty(structure: _Structure, theta: np.ndarray, v: np.ndarray, y: np.ndarray,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -11,6 +11,7 @@ import numpy as np
 
 from .linear import LinearModel
 from .runs import Runs, rest_length
+from .trust import ModelWarning, model_warnings, warnings_json
 
 
 def rms_error(y: np.ndarray, y_sim: np.ndarray) -> float:
@@ -73,9 +74,19 @@ class IdentificationResult:
     def zeros(self) -> np.ndarray:
         return self.linear.zeros
 
-    def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None) -> dict:
+    def free_run(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> np.ndarray:
+        """The model's free-run output on the record (v, y): every run simulated from its own start,
+        at rest at its first input or from zero state, whichever explains its first samples
+        (``Runs.initial_states``)."""
+        runs = Runs.one(np.size(v)) if runs is None else runs
+        settle = rest_length(self.linear.poles)
+        return runs.simulate(self.simulate, v, settle, runs.initial_states(self.simulate, v, y, settle))
+
+    def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None,
+                warnings: Sequence[ModelWarning] = ()) -> dict:
         """The ``identify --json`` document; fit_percent and rms when data (v, y) is given (with
-        ``runs``: every run simulated from rest at its first input, ``Runs.simulate``)."""
+        ``free_run``: every run from its own start). ``warnings``: the given ones (e.g. the record's)
+        and, with data, the model's own (``trust.model_warnings``)."""
         doc: dict[str, Any] = {
             "method": self.method,
             "order": int(self.order if self.order is not None else self.linear.order),
@@ -100,9 +111,10 @@ class IdentificationResult:
         if self.uncertainty is not None:
             self.uncertainty.add_to(doc, self.nonlinearity)
         if v is not None and y is not None:
-            fit, rms = fit_and_rms(y, self.simulate(v) if runs is None
-                                   else runs.simulate(self.simulate, v, rest_length(self.linear.poles)))
+            fit, rms = fit_and_rms(y, self.free_run(v, y, runs))
             doc["fit_percent"], doc["rms"] = _finite_or_none(fit), _finite_or_none(rms)
+            warnings = (*warnings, *model_warnings(self, v, np.asarray(y, dtype=float), fit))
+        doc["warnings"] = warnings_json(warnings)
         for key, value in self.extra.items():
             doc.setdefault(key, value)
         return doc

@@ -84,17 +84,39 @@ class Runs:
         return np.concatenate([np.arange(a + lo, int(b) - ahead) for a, b in zip(self.starts, self.ends)]
                               + [np.zeros(0, dtype=int)]).astype(int)
 
-    def simulate(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, settle: int = 0) -> np.ndarray:
-        """The free-run output of ``simulate`` started anew at every run, concatenated: each run after
-        ``settle`` samples of its first input value (dropped), i.e. at rest at its first input when
-        ``settle`` covers the model's settling time (``rest_length``); 0: the simulator's own initial
-        state. One run: ``simulate(v)`` as it is (the record's own convention)."""
-        if self.count == 1:
+    def simulate(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, settle: int = 0,
+                 at_rest: Sequence[bool] | None = None) -> np.ndarray:
+        """The free-run output of ``simulate`` started anew at every run, concatenated. A run ``at_rest``
+        starts after ``settle`` samples of its first input value (dropped), i.e. at rest at its first
+        input when ``settle`` covers the model's settling time (``rest_length``); another run starts from
+        the simulator's own initial state (zero). Default: every run of several at rest, one run from the
+        simulator's own state (``initial_states`` chooses from the data)."""
+        if at_rest is None:
+            if self.count == 1:
+                return simulate(v)
+            at_rest = (True,) * self.count
+        if self.count == 1 and not at_rest[0]:
             return simulate(v)
         from .simulation_error import preroll_simulate
 
-        return np.concatenate([np.asarray(preroll_simulate(simulate, part, settle), dtype=float)
-                               for part in self.split(v)])
+        return np.concatenate([np.asarray(preroll_simulate(simulate, part, settle) if rest else simulate(part),
+                                          dtype=float) for part, rest in zip(self.split(v), at_rest)])
+
+    def initial_states(self, simulate: Callable[[np.ndarray], np.ndarray], v: np.ndarray, y: np.ndarray,
+                       settle: int) -> tuple[bool, ...]:
+        """Per run, how a model's simulation starts: at rest at the run's first input (True) or from
+        zero state (False), whichever explains the run's first ``settle`` samples better. A record that
+        starts at rest away from zero (a servo held at its set point) and one that starts from zero (a
+        simulation from zero state, the papers' examples) are both taken as they are; the choice is
+        made once, with the method's estimate, and kept while the model is refined."""
+        choice = []
+        for part, y_part in zip(self.split(v), self.split(np.asarray(y, dtype=float))):
+            head = slice(0, max(min(settle, part.size), 1))
+            errors = [float(np.sum((y_part[head] - np.asarray(out, dtype=float)[head]) ** 2))
+                      for out in (Runs.one(part.size).simulate(simulate, part, settle, (rest,))
+                                  for rest in (False, True))]
+            choice.append(bool(np.isfinite(errors[1]) and (errors[1] < errors[0] or not np.isfinite(errors[0]))))
+        return tuple(choice)
 
     def window(self, start: int, stop: int) -> Runs:
         """The runs of samples start .. stop - 1 alone (a run cut by the window keeps its part)."""

@@ -11,6 +11,8 @@ import numpy as np
 
 from ..errors import UsageError
 from ..identification.runs import Runs, concatenate
+from ..identification.trust import ModelWarning
+from .resample import uniform_grid
 
 RUN_COLUMN = "run"  # CSV/NPZ column of run labels: consecutive rows with one label form a run
 
@@ -18,8 +20,9 @@ RUN_COLUMN = "run"  # CSV/NPZ column of run labels: consecutive rows with one la
 @dataclass(frozen=True, eq=False)
 class Record:
     """An input/output record: excitation v, response y, optional time stamps t (s), the
-    external reference r of a closed loop (``--reference``, None when not given) and its runs
-    (separate experiments laid end to end; None: one continuous run)."""
+    external reference r of a closed loop (``--reference``, None when not given), its runs
+    (separate experiments laid end to end; None: one continuous run) and what loading it had to
+    say (``warnings``, e.g. ``irregular_sampling``: ``io.resample``)."""
 
     v: np.ndarray
     y: np.ndarray
@@ -27,6 +30,7 @@ class Record:
     source: str = ""
     r: np.ndarray | None = None
     runs: Runs | None = None
+    warnings: tuple[ModelWarning, ...] = ()
 
     def __len__(self) -> int:
         return self.v.size
@@ -172,7 +176,13 @@ def load_record(path: str | Path, input_name: str = "u", output_name: str = "y",
     if labels is not None and (labels.size != v.size or not np.all(np.isfinite(labels))):
         raise UsageError(f"{path}: column {RUN_COLUMN!r} must hold a finite run label on every row")
     runs = None if labels is None else Runs.from_labels(labels)
-    return Record(v, y, t, str(path), r, None if runs is None or runs.count == 1 else runs)
+    runs = None if runs is None or runs.count == 1 else runs
+    if t is None:
+        return Record(v, y, t, str(path), r, runs)
+    if t.size != v.size or not np.all(np.isfinite(t)):
+        raise UsageError(f"{path}: column {time_name!r} must hold a finite time on every row")
+    even = uniform_grid(str(path), t, v, y, r, runs)  # uneven steps: resampled, with a warning
+    return Record(even.v, even.y, even.t, str(path), even.r, even.runs, (even.warning,) if even.warning else ())
 
 
 def concatenate_records(records: list[Record]) -> Record:
@@ -191,6 +201,7 @@ def concatenate_records(records: list[Record]) -> Record:
         ", ".join(rec.source for rec in records),
         None if references[0] is None else np.concatenate(references),
         concatenate([(rec.v, rec.runs) for rec in records]),
+        tuple(w for rec in records for w in rec.warnings),
     )
 
 

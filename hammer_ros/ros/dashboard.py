@@ -59,7 +59,7 @@ _MODEL = {"method": _STRING, "order": _INTEGER, "poles": _PAIRS, "zeros": _PAIRS
           "feedback_nonlinearity": _MAP, "fit_percent": _NUMBER_OR_NULL, "rms": _NUMBER_OR_NULL,
           "poles_std": _PAIRS, "zeros_std": _PAIRS, "gain_std": _NUMBER_OR_NULL, "uncertainty": _STRING,
           "tau_max": _INTEGER, "mu": _INTEGER, "plls": _object({}, others=_ANY), "parallel_path": _LINEAR,
-          "refined": _object({}, others=_ANY)}
+          "refined": _object({}, others=_ANY), "warnings": _list_of({"code": _STRING, "message": _STRING})}
 _SCORE = {"structure": _STRING, "rms": _NUMBER, "fit_percent": _NUMBER}
 
 

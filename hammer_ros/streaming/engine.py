@@ -43,7 +43,9 @@ Pipeline, per batch of timestamped samples of either stream:
    ``methods.identify`` on the raw window. No model (``status``) while the window fills, when
    the input is not persistently exciting (absolutely, or relative to the windows behind the
    published models: ``min_excitation``), when the published model fits the window clearly
-   better (``kept``), or when the method fails or raises (never propagated).
+   better (``kept``), when its bounds are too wide or its ``warnings`` say not to trust it
+   (``poor_fit``, ``not_exciting``: ``identification.trust``; both ``uncertain``), or when the
+   method fails or raises (never propagated).
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ from ..identification.instrumental import refinement_input
 from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
 from ..identification.result import IdentificationResult, fit_percent
+from ..identification.trust import model_warnings, untrusted
 from .aligner import StreamAligner
 from .config import CLS_STRUCTURES, KEEP_MARGIN, PE_CONDITION_LIMIT, EngineConfig, EngineStats
 from .correlation_window import CorrelationWindow
@@ -435,6 +438,9 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
     wide = too_uncertain(result, cfg.max_relative_sd)
     if wide:
         return outcome(False, f"uncertain model: {wide}", status="uncertain")
+    doubt = untrusted(model_warnings(result, v, y, estimate.fit))
+    if doubt is not None:  # poor_fit, not_exciting: never published as a confident model
+        return outcome(False, f"uncertain model: {doubt.code}: {doubt.message}", status="uncertain")
     return outcome(True, "", result, estimate.doc, markov=_markov(result, estimate.doc) if document else ())
 
 
