@@ -32,6 +32,11 @@ CONFIG = """hammer_ros:
 """
 
 
+def pole(rate: float) -> complex:
+    """The servo's pole of positive imaginary part, sampled at ``rate`` Hz: exp(s / rate)."""
+    return complex(np.exp(complex(-ZETA * OMEGA, OMEGA * np.sqrt(1 - ZETA**2)) / rate))
+
+
 def servo(seconds: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(setpoint levels, one a second, held from second j; state at STATE_RATE; the setpoint as
     the servo saw it at each state sample). The state is the discretised loop's response (ZOH,

@@ -733,19 +733,25 @@ class IdentificationCore:
         for the other stream's message j received nearest to r (its receive time r_j, its last
         sample's stamp s_j): whatever that stream's time base (a robot's clock, a bag's recording
         time played at any rate, or receive times) the message lands where the other stream was
-        when it arrived. Without the other stream yet: the receive time."""
+        when it arrived. Before the other stream's first message it cannot be placed (unplaced)."""
         for stream, other in (STREAMS, STREAMS[::-1]):
             source = self.inputs[stream]
             if not source.by_arrival or batches.get(stream) is None:
                 source.by_arrival.clear()
                 continue
-            stamps = batches[stream][0]
+            stamps, values = batches[stream]
             receives, ends = self.inputs[other].arrival_map
             for start, n, receive in source.by_arrival:
-                j = int(np.argmin(np.abs(receives - receive))) if receives.size else -1
-                last = receive + (ends[j] - receives[j] if j >= 0 else 0.0)
-                stamps[start:start + n] = last - np.arange(n - 1, -1, -1) / (self.stamper.rate or 1.0)
+                if receives.size:
+                    j = int(np.argmin(np.abs(receives - receive)))
+                    last = ends[j] + receive - receives[j]
+                    stamps[start:start + n] = last - np.arange(n - 1, -1, -1) / (self.stamper.rate or 1.0)
+                else:
+                    self.unplaced += n
             source.by_arrival.clear()
+            placed = np.isfinite(stamps)
+            if not placed.all():
+                batches[stream] = (stamps[placed], values[placed]) if placed.any() else None
 
     def _decoded(self, stream: str, chunks: list[tuple]) -> tuple | None:
         """``_stamped`` for the chunks of a shared topic (``SharedTopic.distribute``: receive
