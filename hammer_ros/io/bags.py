@@ -7,8 +7,8 @@ bag, so no ROS installation is needed; a ``.db3`` file is read as MCAP records b
 are skipped. Files are read sequentially and fault-tolerantly (``_RecordScan``):
 a truncated or corrupt recording gives every valid message, with a warning saying where it
 broke; oversized or undecodable messages are skipped and counted (``BagReadStats``).
-A sample's stamp is the message's ``header.stamp`` when it has a
-header (an all-zero stamp counts as unset), else the bag's log time; a message with n samples
+A sample's stamp is the message's ``header.stamp`` when it has a header (an all-zero stamp is
+no stamp: a warning names the topic once), else the bag's log time; a message with n samples
 (``data[:]``, a numeric array field) follows the batch convention of ``field_path``.
 
 Writing (``ResultWriter``) uses the ``mcap_ros2`` writer with the ``.msg`` definitions shipped in
@@ -37,6 +37,7 @@ import numpy as np
 import yaml
 
 from ..errors import UsageError
+from ..identification.runs import Runs
 from ..ros.field_path import FieldPath, extract_samples, message_stamp, message_stamp_ns, parse_field_path
 from ..streaming.aligner import StreamAligner
 from ..streaming.config import EngineConfig, EngineStats
@@ -254,6 +255,7 @@ class BagReadStats:
     undecodable: int = 0  # messages whose CDR bytes do not decode with their schema
     field_errors: dict[str, int] = field(default_factory=dict)  # topic -> messages without the field
     first_error: dict[str, str] = field(default_factory=dict)  # kind or topic -> the first reason
+    zero_stamps: dict[str, int] = field(default_factory=dict)  # topic -> messages whose header stamp is zero
 
     def note(self, key: str, reason: str) -> None:
         self.first_error.setdefault(key, reason)
@@ -268,6 +270,8 @@ class BagReadStats:
                          f"({self.first_error['undecodable']})")
         lines.extend(f"{path}: {n} message(s) on {topic} skipped ({self.first_error[topic]})"
                      for topic, n in self.field_errors.items())
+        lines.extend(f"{path}: {topic}: header.stamp is zero (no stamp) in {n} message(s): placed at their log time"
+                     for topic, n in self.zero_stamps.items())
         return lines
 
     def report(self, path: str | Path) -> None:
@@ -692,11 +696,13 @@ def iter_role_samples(path: str | Path, specs: list[tuple[Any, StreamSpec]],
     for role, spec in specs:
         roles.setdefault(spec.topic, []).append((role, spec))
     readers: dict[tuple[str, int], list | None] = {}
+    headed: dict[str, bool] = {}  # topic -> its messages start with a std_msgs/Header (a zero stamp: none)
 
     def decode(file: Path, decoders: _Decoders, channel, record, stats: BagReadStats) -> Any:
         key = (str(file), channel.id)
         if key not in readers:
             readers[key] = _field_readers(decoders, channel, roles[channel.topic])
+            headed[channel.topic] = _starts_with_header(decoders, channel)
         extractors = readers[key]
         if extractors is not None:
             try:
@@ -708,10 +714,14 @@ def iter_role_samples(path: str | Path, specs: list[tuple[Any, StreamSpec]],
     for log_time, topic, msg in _bag_records(path, list(roles), stats, decode):
         if isinstance(msg, _Read):
             stamp, stamp_ns = (msg.fields[0][1], msg.stamp_ns) if msg.fields[0][1] else (log_time * 1e-9, log_time)
+            if not msg.fields[0][1] and headed.get(topic):
+                stats.zero_stamps[topic] = stats.zero_stamps.get(topic, 0) + 1
             for (role, _), (values, _) in zip(roles[topic], msg.fields, strict=True):
                 yield BagSample(role, stamp, values, log_time, stamp_ns)
             continue
         stamp = message_stamp(msg)
+        if stamp == 0.0:  # a header without a stamp (None: no header)
+            stats.zero_stamps[topic] = stats.zero_stamps.get(topic, 0) + 1
         stamp, stamp_ns = (log_time * 1e-9, log_time) if not stamp else (stamp, message_stamp_ns(msg))
         for role, spec in roles[topic]:
             try:
@@ -742,6 +752,16 @@ class _Read:
     stamp_ns: int
 
 
+def _starts_with_header(decoders: _Decoders, channel) -> bool:
+    """Whether the channel's ros2msg schema starts with a std_msgs/Header (``header_stamp_ns``)."""
+    schema = decoders.schemas.get(channel.schema_id)
+    if schema is None or schema.encoding != "ros2msg":
+        return False
+    lines = (line.split("#")[0].split() for line in schema.data.decode(errors="replace").splitlines())
+    first = next((words for words in lines if words), [])
+    return first[:1] in (["std_msgs/Header"], ["Header"], ["std_msgs/msg/Header"])
+
+
 def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSpec]]) -> list | None:
     """``cdr.schema_extractor`` of each spec's field on this channel, or None (decode in full)
     when the channel is not CDR with a ros2msg schema or one field cannot be read that way."""
@@ -761,8 +781,9 @@ def _field_readers(decoders: _Decoders, channel, specs: list[tuple[str, StreamSp
 def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec: str | None = None,
                     config: str | Path | None = None, reference_spec: str | None = None) -> Record:
     """All aligned samples of a bag as a Record (the streaming engine's alignment, without the
-    window): used by ``identify``/``diagnose`` on bags. Gaps are bridged by concatenating the
-    gap-free segments (a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
+    window): used by ``identify``/``diagnose`` on bags. The gap-free segments (a gap: the
+    aligner's, a silence longer than ``max_gap``) are the record's runs, separate experiments
+    (``Record.runs``; None for one segment; a note on stderr says how many). At most MAX_RECORD_SAMPLES samples
     (a longer bag is a UsageError pointing to ``replay``, which keeps only a window).
 
     ``reference_spec`` (``--reference /topic:field``, else the config's ``reference_topic`` and
@@ -777,24 +798,27 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
     reference = stream_spec("--reference", "reference", reference_spec, params, str(config or "config"),
                             required=False)
-    t, v, y = _aligned_samples(path, excitation, response, engine_config)
+    t, v, y, runs = _aligned_samples(path, excitation, response, engine_config)
     if reference is None:
-        return Record(v, y, t, str(path))
+        return Record(v, y, t, str(path), runs=runs)
     try:
-        t_r, _, r = _aligned_samples(path, excitation, reference, engine_config)
+        t_r, _, r, _ = _aligned_samples(path, excitation, reference, engine_config)
     except UsageError as exc:
         raise UsageError(f"--reference: {exc}") from None
-    return Record(v, y, t, str(path), np.interp(t, t_r, r))
+    return Record(v, y, t, str(path), np.interp(t, t_r, r), runs)
 
 
 def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
-                     engine_config: EngineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, v, y): every aligned sample of the two streams (``load_bag_record``)."""
+                     engine_config: EngineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, Runs | None]:
+    """(t, v, y, runs): every aligned sample of the two streams and its gap-free segments as
+    runs (None: one segment) (``load_bag_record``)."""
     check_topics(path, (excitation, response))
     check_fields(path, (excitation, response))
     chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    segments: list[int] = [0]  # the first chunk of each segment
     stats = EngineStats(sample_rate=engine_config.sample_rate)
-    aligner = StreamAligner(engine_config, stats, lambda t, v, y: chunks.append((t, v, y)), lambda: None)
+    aligner = StreamAligner(engine_config, stats, lambda t, v, y: chunks.append((t, v, y)),
+                            lambda: segments.append(len(chunks)))
     read = BagReadStats()
     for sample in iter_bag_samples(path, excitation, response, read):
         aligner.add_message(sample.stream, sample.stamp, sample.values, flush=False)
@@ -808,10 +832,14 @@ def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamS
     if not chunks:
         raise UsageError(f"{path}: no aligned samples of {excitation} and {response} "
                          f"({stats.received_excitation} and {stats.received_response} received)")
-    if stats.gaps:
-        print(f"hammer-ros: {path}: {stats.gaps} gap(s) in the streams; segments concatenated", file=sys.stderr)
+    sizes = np.cumsum([0] + [c[0].size for c in chunks])
+    runs = Runs.from_lengths([sizes[stop] - sizes[start]
+                              for start, stop in zip(segments, [*segments[1:], len(chunks)], strict=True)])
+    if runs.count > 1:
+        print(f"hammer-ros: {path}: {stats.gaps + stats.clock_resets} gap(s) in the streams: {runs.count} runs",
+              file=sys.stderr)
     t, v, y = (np.concatenate(parts) for parts in zip(*chunks))
-    return t, v, y
+    return t, v, y, runs if runs.count > 1 else None
 
 
 # ------------------------------------------------------------------------------- writing

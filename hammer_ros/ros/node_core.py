@@ -15,7 +15,12 @@ final model and finishes the file.
 
 Stamps: a message with a non-zero ``header.stamp`` is placed by its stamp (a batch of n samples
 holds samples at stamp - (n-1)/fs .. stamp); any other message is placed by counting samples at
-the sample rate, anchored on the least delayed receive times (``sample_clock.ArrivalStamper``).
+the sample rate, anchored on the least delayed receive times (``sample_clock.ArrivalStamper``),
+except a message whose header stamp is zero (no stamp) on a stream that publishes far below the
+grid rate (a setpoint: its median arrival interval over the last ``ARRIVALS`` messages longer than
+``HOLD_PERIODS`` sample periods per sample): counting would put its samples a period apart, so it
+is placed at its receive time, read on the other stream's time base (``_place_by_arrival``), and
+the aligner holds it until the next one. The first zero stamp of a topic is logged once.
 """
 
 from __future__ import annotations
@@ -63,7 +68,7 @@ from ..errors import UsageError  # noqa: E402
 from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
-from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
+from ..streaming.config import HOLD_PERIODS, MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
 from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
 from .cdr import extract_batch, raw_extractor  # noqa: E402
@@ -84,6 +89,7 @@ from .services import NodeServices  # noqa: E402
 
 NODE_NAME = "hammer_ros"
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
+ARRIVALS = 6  # arrival times of zero-stamped messages kept per stream to tell a sparse stream (module docstring)
 WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``activate``)
 MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
@@ -275,6 +281,11 @@ class _Input:
         self.wrong_type = ""  # publishers of another type on the topic (their messages never arrive)
         self.shared: _Input | None = None  # the subscription of a topic read by several channels (``channels``)
         self.feed = None  # channels.SharedTopic: its decoded chunks come into ``pending`` (``_decoded``)
+        self.headed = False  # the message type has a std_msgs/Header: a zero stamp there is a missing stamp
+        self.zero_stamps = 0  # messages with a header stamp of zero
+        self.arrivals: deque = deque(maxlen=ARRIVALS)  # receive times of the last zero-stamped messages
+        self.arrival_map = (np.empty(0), np.empty(0))  # (receive times, stamps of their last samples): last flush
+        self.by_arrival: list[tuple[int, int, float]] = []  # (start, samples, receive time) placed at the flush's end
 
     def subscribe(self, node, cls, topic: str, callback: Callable, qos: QoSProfile, raw: bool) -> None:
         """(Re)subscribe. The middleware's message-lost status is read when asked (``dds_lost``),
@@ -582,6 +593,7 @@ class IdentificationCore:
         """The input of ``stream`` made ready to read its messages: (input, message class, QoS)."""
         source = self.inputs[stream]
         cls = message_class(self.values[f"{stream}_type"])
+        source.headed = cls.get_fields_and_field_types().get("header") == "std_msgs/Header"
         source.path = parse_field_path(self.values[f"{stream}_field"])
         source.raw = raw_extractor(cls, source.path)  # None: rclpy builds the messages
         source.read = source.raw or built_reader(source.path)
@@ -625,6 +637,7 @@ class IdentificationCore:
             reference = batches.pop(REFERENCE, None)
             if reference is not None:
                 self.engine.add_reference(*reference)
+            self._place_by_arrival(batches)
             self.engine.add_streams({k: v for k, v in batches.items() if v is not None})
             for source in self.inputs.values():
                 source.pending_limit = max(1, self.values["max_pending"] // source.message_samples)
@@ -642,6 +655,7 @@ class IdentificationCore:
         firsts: list[float] = []
         sizes: list[int] = []
         values: list = []
+        arrived: list[float] = []
         explicit: list[tuple[int, np.ndarray]] = []  # stamped batches placed by the engine's rule
         total = 0
         source = self.inputs[stream]
@@ -664,6 +678,9 @@ class IdentificationCore:
                     continue
                 explicit.append((total, t))
                 first = t[0]
+            elif source.headed and self._sparse(stream, receive, n):
+                source.by_arrival.append((total, n, receive))
+                first = math.nan  # placed at the end of the flush (``_place_by_arrival``)
             else:
                 first = self.stamper.first_stamp(stream, receive, n)
                 if first is None:
@@ -672,19 +689,69 @@ class IdentificationCore:
             firsts.append(first)
             sizes.append(n)
             values.append(x)
+            arrived.append(receive)
             total += n
         if not values:
             return None
         floats = [type(x) is float for x in values]
-        if all(floats):  # single samples
-            return np.array(firsts), np.array(values)
         counts = np.array(sizes)
-        offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message
-        # (fs is known whenever a batch was placed by counting; explicit stamps overwrite theirs)
-        stamps = np.repeat(np.array(firsts), counts) + offsets / (self.stamper.rate or 1.0)
-        for start, t in explicit:
-            stamps[start:start + t.size] = t
-        return stamps, np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
+        if all(floats):  # single samples
+            stamps, joined = np.array(firsts), np.array(values)
+        else:
+            offsets = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)  # k within its message
+            # (fs is known whenever a batch was placed by counting; explicit stamps overwrite theirs)
+            stamps = np.repeat(np.array(firsts), counts) + offsets / (self.stamper.rate or 1.0)
+            for start, t in explicit:
+                stamps[start:start + t.size] = t
+            joined = np.concatenate([np.atleast_1d(x) for x in values] if any(floats) else values)
+        ends = stamps[np.cumsum(counts) - 1]
+        placed = np.isfinite(ends)
+        if placed.any():
+            source.arrival_map = (np.array(arrived)[placed], ends[placed])
+        return stamps, joined
+
+    def _sparse(self, stream: str, receive: float, samples: int) -> bool:
+        """Whether ``stream``, whose message received at ``receive`` has a zero header stamp,
+        publishes far below the grid rate (module docstring), or is not yet known not to (its first
+        message); counts and logs the zero stamp."""
+        source = self.inputs[stream]
+        if not source.zero_stamps:
+            self.get_logger().warning(f"{stream} {self.values[f'{stream}_topic']}: header.stamp is zero (no stamp): "
+                                      "its samples are placed by their receive times")
+        source.zero_stamps += 1
+        source.arrivals.append(receive)
+        if stream == REFERENCE or (not self.stamper.rate and samples > 1):
+            return False
+        if len(source.arrivals) < 2 or not self.stamper.rate:  # not yet known: never counted on a wrong clock
+            return True
+        interval = float(np.median(np.diff(source.arrivals)))
+        return interval > HOLD_PERIODS * samples / self.stamper.rate
+
+    def _place_by_arrival(self, batches: dict[str, tuple | None]) -> None:
+        """Stamp the samples left for it by ``_stamped`` (zero-stamped messages of a sparse
+        stream): the message's receive time r read on the other stream's stamps, s_j + (r - r_j)
+        for the other stream's message j received nearest to r (its receive time r_j, its last
+        sample's stamp s_j): whatever that stream's time base (a robot's clock, a bag's recording
+        time played at any rate, or receive times) the message lands where the other stream was
+        when it arrived. Before the other stream's first message it cannot be placed (unplaced)."""
+        for stream, other in (STREAMS, STREAMS[::-1]):
+            source = self.inputs[stream]
+            if not source.by_arrival or batches.get(stream) is None:
+                source.by_arrival.clear()
+                continue
+            stamps, values = batches[stream]
+            receives, ends = self.inputs[other].arrival_map
+            for start, n, receive in source.by_arrival:
+                if receives.size:
+                    j = int(np.argmin(np.abs(receives - receive)))
+                    last = ends[j] + receive - receives[j]
+                    stamps[start:start + n] = last - np.arange(n - 1, -1, -1) / (self.stamper.rate or 1.0)
+                else:
+                    self.unplaced += n
+            source.by_arrival.clear()
+            placed = np.isfinite(stamps)
+            if not placed.all():
+                batches[stream] = (stamps[placed], values[placed]) if placed.any() else None
 
     def _decoded(self, stream: str, chunks: list[tuple]) -> tuple | None:
         """``_stamped`` for the chunks of a shared topic (``SharedTopic.distribute``: receive
@@ -714,6 +781,7 @@ class IdentificationCore:
         self.unplaced += n * (placed.size - int(np.count_nonzero(placed)))
         if not placed.any():
             return None
+        self.inputs[stream].arrival_map = (np.array(receives)[placed], firsts[placed] + (n - 1) / self.stamper.rate)
         return (firsts[placed, None] + np.arange(n) / self.stamper.rate).ravel(), block[placed].ravel()
 
     def _ingest_loop(self, stop: threading.Event) -> None:
@@ -969,6 +1037,8 @@ class IdentificationCore:
             "response_field_errors": self.inputs["response"].field_errors,
             "unplaced_samples": self.unplaced,
             "clock_restarts": self.stamper.restarts,
+            "excitation_zero_stamps": self.inputs["excitation"].zero_stamps,
+            "response_zero_stamps": self.inputs["response"].zero_stamps,
             "skipped_solves": self.skipped_solves,
             "excitation_queue_dropped": self.inputs["excitation"].dropped(),
             "response_queue_dropped": self.inputs["response"].dropped(),

@@ -148,6 +148,7 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
         "last_stamp_response": f"{stats.last_stamp.get('response', float('nan')):.6f}",
         "missing_excitation": stats.missing("excitation"),
         "missing_response": stats.missing("response"),
+        "excitation_held": stats.excitation_held,
         "dropped": stats.overflow + stats.unstamped,
         "overflow": stats.overflow,
         "unstamped": stats.unstamped,

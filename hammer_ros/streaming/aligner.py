@@ -1,5 +1,13 @@
 """Steps 1-3 of the engine (``hammer_ros.streaming.engine``): screening, sample-rate inference, alignment of
-the two streams on one grid, and the gap policy."""
+the two streams on one grid, and the gap policy.
+
+A *held* excitation: a command or setpoint stream published far below the grid rate (its median
+step over more than ``HOLD_PERIODS`` grid periods, e.g. a 1 Hz setpoint beside a 100 Hz sensor)
+holds each value until its next message (zero-order hold), as a controller holds its setpoint.
+Then the grid is clocked by the response (its stamps, its inferred rate, or ``sample_rate``
+anchored on it), and only a silence of the response is a gap, or a silence of the excitation
+longer than a ``max_gap`` set explicitly. An excitation at about the grid rate is aligned as
+before: the grid is clocked by it and a silence of either stream over ``max_gap`` is a gap."""
 
 from __future__ import annotations
 
@@ -11,6 +19,7 @@ import numpy as np
 from .config import (
     CLOCK_RESET_SECONDS,
     GRID_TOLERANCE,
+    HOLD_PERIODS,
     INFER_SAMPLES,
     MAX_ABS_SAMPLE,
     PENDING_SAMPLES,
@@ -66,15 +75,21 @@ class _Stream:
     def clear(self) -> None:
         self._parts, self.size = [], 0
 
-    def segment_end(self, index: int, max_gap: float) -> tuple[float, float | None]:
+    def segment_end(self, index: int, max_gap: float, hold: float = 0.0) -> tuple[float, float | None]:
         """(stamp where the segment holding sample ``index`` ends, stamp of the first sample after
-        the gap that ends it, or None while the segment is still open)."""
+        the gap that ends it, or None while the segment is still open). ``hold``: how long the
+        last sample before a gap (or the newest one) still holds (0: it ends the segment)."""
         t = self.t
         steps = t[index + 1 :] - t[index:-1]
         if steps.size == 0 or steps.max() <= max_gap:
-            return float(t[-1]), None
+            return float(t[-1]) + hold, None
         j = index + int(np.argmax(steps > max_gap))
-        return float(t[j]), float(t[j + 1])
+        return float(t[j]) + hold, float(t[j + 1])
+
+    def median_step(self) -> float:
+        """Median step of the first INFER_SAMPLES stamps held (inf with fewer than two)."""
+        t = self.t[:INFER_SAMPLES]
+        return float(np.median(np.diff(t))) if t.size >= 2 else math.inf
 
     def values_at(self, grid: np.ndarray, tol: float, interpolation: str, start: int) -> np.ndarray:
         """The stream's values at the grid points (``start``: the index of the last sample at or before
@@ -105,6 +120,7 @@ class StreamAligner:
         self._buffer: dict[str, tuple[list, list]] = {s: ([], []) for s in STREAMS}
         self.buffered = 0
         self.rate: float | None = config.sample_rate or None
+        self.held: bool | None = None  # the excitation is held (see the module docstring); None: not yet known
         self._anchor: float | None = None
         self._k = 0
         self._last_grid = -np.inf
@@ -117,6 +133,7 @@ class StreamAligner:
         self.config = config
         self.rate = config.sample_rate or self.rate
         self.stats.sample_rate = self.rate or 0.0
+        self.held = None
         self._anchor = None
         self._segment_samples = 0
         self._emit()
@@ -309,26 +326,39 @@ class StreamAligner:
         return int(t.size)
 
     def _infer_rate(self) -> None:
-        t = self._streams["excitation"].t
-        if t.size >= INFER_SAMPLES:
-            self.rate = float(1.0 / np.median(np.diff(t[:INFER_SAMPLES])))
-            self.stats.sample_rate = self.rate
+        """The grid rate from the excitation's first INFER_SAMPLES stamps, or from the response's
+        when the excitation is held (its steps longer than HOLD_PERIODS of the response's)."""
+        ex, re = self._streams["excitation"], self._streams["response"]
+        if re.size >= INFER_SAMPLES and ex.size >= 2 and ex.median_step() > HOLD_PERIODS * re.median_step():
+            self.rate = 1.0 / re.median_step()
+        elif ex.size >= INFER_SAMPLES:
+            self.rate = 1.0 / ex.median_step()
+        else:
+            return
+        self.stats.sample_rate = self.rate
 
-    def _next_grid_time(self, ex: _Stream, start: float, tol: float) -> float | None:
+    def _decide_hold(self) -> bool | None:
+        """Whether the excitation is held: decided once, from its first stamps (two at least)."""
+        ex = self._streams["excitation"]
+        if self.held is None and ex.size >= 2:
+            self.held = self.stats.excitation_held = ex.median_step() > HOLD_PERIODS / self.rate
+        return self.held
+
+    def _next_grid_time(self, clock: _Stream, start: float, tol: float) -> float | None:
         """The first grid point not yet emitted and not before ``start`` (None: wait for data)."""
         if self.config.sample_rate:  # fixed grid t_a + k / fs
             if self._anchor is None:
-                self._anchor, self._k = float(ex.t[0]), 0
+                self._anchor, self._k = float(clock.t[0]), 0
             self._k = max(self._k, math.ceil((start - tol - self._anchor) * self.rate))
             return self._anchor + self._k / self.rate
-        later = ex.t[(ex.t > self._last_grid) & (ex.t >= start - tol)]  # excitation-clocked grid
+        later = clock.t[(clock.t > self._last_grid) & (clock.t >= start - tol)]  # clocked by the stream's stamps
         return float(later[0]) if later.size else None
 
-    def _grid_until(self, ex: _Stream, first: float, end: float) -> np.ndarray:
+    def _grid_until(self, clock: _Stream, first: float, end: float) -> np.ndarray:
         if self.config.sample_rate:
             last_k = math.floor((end - self._anchor) * self.rate)
             return self._anchor + np.arange(self._k, last_k + 1) / self.rate
-        return ex.t[(ex.t >= first) & (ex.t <= end)]
+        return clock.t[(clock.t >= first) & (clock.t <= end)]
 
     def _emit(self) -> None:
         if self.rate is None:
@@ -340,15 +370,19 @@ class StreamAligner:
         max_gap = cfg.max_gap or 5.0 / self.rate
         ex, re = self._streams["excitation"], self._streams["response"]
         while ex.size and re.size:
-            tk = self._next_grid_time(ex, max(ex.t[0], re.t[0]), tol)
+            held = self._decide_hold()
+            clock = re if held else ex
+            hold = cfg.max_gap or math.inf  # how long a held excitation sample lasts without a next one
+            tk = self._next_grid_time(clock, max(ex.t[0], re.t[0]), tol)
             if tk is None:
                 return
             ends, starts = {}, []
             for name, s in (("excitation", ex), ("response", re)):
                 starts.append(int(np.searchsorted(s.t, tk + tol, side="right")) - 1)
-                ends[name] = s.segment_end(max(starts[-1], 0), max_gap)
+                ends[name] = (s.segment_end(max(starts[-1], 0), hold, hold) if held and s is ex
+                              else s.segment_end(max(starts[-1], 0), max_gap))
             end = min(e for e, _ in ends.values())
-            grid = self._grid_until(ex, tk, end + tol)  # from tk on
+            grid = self._grid_until(clock, tk, end + tol)  # from tk on
             if grid.size:
                 self._emit_grid(grid, ex.values_at(grid, tol, cfg.interpolation, starts[0]),
                                 re.values_at(grid, tol, cfg.interpolation, starts[1]))
@@ -360,7 +394,7 @@ class StreamAligner:
             name, resume = blocked[0]
             s = self._streams[name]
             s.drop(int(np.searchsorted(s.t, resume, side="left")))
-            if name == "excitation":
+            if s is clock:
                 self._anchor = None
             if self._segment_samples:
                 self.stats.gaps += 1

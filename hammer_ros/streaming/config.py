@@ -26,6 +26,7 @@ MAX_ABS_SAMPLE = 1e100  # |x| above this is screened like NaN: cubes of window s
 PENDING_SAMPLES = 2_000_000  # per stream, waiting for the other stream (32 MB); at least 4 windows
 CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older than its stream's newest: clock reset
 STREAMS = ("excitation", "response")
+HOLD_PERIODS = 4.0  # an excitation whose median step is longer than this many grid periods is held (aligner)
 _FIELD_KINDS = {"sample_rate": float, "window": int, "forgetting": float, "tau_max": int, "method": str, "order": int,
                 "delay": int, "mu": int, "poly": int, "partition": tuple, "interpolation": str, "max_gap": float,
                 "min_fill": float, "min_excitation": float, "refine": bool, "max_relative_sd": float}
@@ -132,6 +133,7 @@ class EngineStats:
     window_samples: int = 0
     window_fill: float = 0.0
     sample_rate: float = 0.0  # grid rate in use (configured or inferred), 0 = not yet known
+    excitation_held: bool = False  # the excitation publishes far below the grid rate: held between messages
     solves: int = 0
     solve_errors: int = 0  # solves that gave no model, for any reason below or the window filling
     not_exciting: int = 0  # ... because the input was not persistently exciting
@@ -147,9 +149,10 @@ class EngineStats:
     def missing(self, stream: str) -> int:
         """Samples of ``stream`` that the stamps say were sent but never arrived (a uniform
         stream at ``sample_rate`` since its first stamp, or the last clock reset; 0 while the
-        rate is unknown): what the middleware dropped before the node saw it."""
+        rate is unknown, and for a held excitation): what the middleware dropped before the node saw it."""
         span = self.last_stamp.get(stream, 0.0) - self.first_stamp.get(stream, 0.0)
-        if not self.sample_rate or stream not in self.first_stamp:
+        held = stream == "excitation" and self.excitation_held
+        if not self.sample_rate or stream not in self.first_stamp or held:
             return 0
         return max(0, round(span * self.sample_rate) + 1 - self.accepted[stream] - self.bad_values[stream])
 

@@ -1,0 +1,112 @@
+"""A position servo driven by a held setpoint, recorded as a robot records it: the setpoint on
+/setpoint (sensor_msgs/JointState, position[0]) at 1 Hz with every header stamp ZERO, the
+servo's position on /joint_states (JointState, position[0]) at 100 Hz with header stamp = sample
+time (log time 0.5 ms later). The servo: a continuous second-order loop (natural frequency
+``OMEGA``, damping ``ZETA``, static gain 1) under the zero-order-held setpoint, discretised at
+100 Hz; the setpoint is a staircase of random levels, one a second.
+
+``python -m held_setpoint BAG [RATE]`` plays the bag's two topics as recorded (their CDR bytes,
+header stamps untouched) at RATE x speed once the node's two subscriptions are matched, then
+exits: the live test's publisher process."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+from scipy import signal
+
+STATE_RATE = 100.0
+OMEGA, ZETA = 2 * np.pi * 0.7, 0.6
+START_NS = 1_700_000_000_000_000_000  # a recording's epoch time
+TOPICS = {"setpoint": "/setpoint", "state": "/joint_states"}
+CONFIG = """hammer_ros:
+  ros__parameters:
+    excitation_topic: /setpoint
+    excitation_type: sensor_msgs/msg/JointState
+    excitation_field: position[0]
+    response_topic: /joint_states
+    response_type: sensor_msgs/msg/JointState
+    response_field: position[0]
+"""
+
+
+def pole(rate: float) -> complex:
+    """The servo's pole of positive imaginary part, sampled at ``rate`` Hz: exp(s / rate)."""
+    return complex(np.exp(complex(-ZETA * OMEGA, OMEGA * np.sqrt(1 - ZETA**2)) / rate))
+
+
+def servo(seconds: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(setpoint levels, one a second, held from second j; state at STATE_RATE; the setpoint as
+    the servo saw it at each state sample). The state is the discretised loop's response (ZOH,
+    so the position at sample k depends on the setpoint up to sample k - 1) plus 0.2 % noise."""
+    rng = np.random.default_rng(seed)
+    levels = rng.uniform(-1.0, 1.0, int(seconds))
+    held = np.repeat(levels, int(STATE_RATE))
+    num, den, _ = signal.cont2discrete(([OMEGA**2], [1.0, 2 * ZETA * OMEGA, OMEGA**2]), 1 / STATE_RATE)
+    state = signal.lfilter(np.ravel(num), den, held)
+    return levels, state + 0.002 * rng.standard_normal(held.size), held
+
+
+def write_bag(path, seconds: float = 40.0, silence: tuple[float, float] | None = None, seed: int = 3) -> np.ndarray:
+    """The recording as a rosbag2 directory (MCAP storage, written by rosbags); ``silence``:
+    (start, length) s in which /joint_states publishes nothing. Returns the state samples."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types = store.types
+    levels, state, _ = servo(seconds, seed)
+    period_ns = int(1e9 / STATE_RATE)
+
+    def joint_state(value: float, stamp_ns: int) -> bytes:
+        stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+        msg = types["sensor_msgs/msg/JointState"](
+            header=types["std_msgs/msg/Header"](stamp=stamp, frame_id=""), name=["joint"],
+            position=np.array([value]), velocity=np.array([], dtype=float), effort=np.array([], dtype=float))
+        return store.serialize_cdr(msg, "sensor_msgs/msg/JointState")
+
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+        setpoint = writer.add_connection(TOPICS["setpoint"], "sensor_msgs/msg/JointState", typestore=store)
+        joints = writer.add_connection(TOPICS["state"], "sensor_msgs/msg/JointState", typestore=store)
+        per_level = int(STATE_RATE)
+        for k, y in enumerate(state):
+            t = START_NS + k * period_ns
+            if k % per_level == 0:
+                writer.write(setpoint, t, joint_state(float(levels[k // per_level]), 0))
+            if silence is None or not silence[0] <= k / STATE_RATE < silence[0] + silence[1]:
+                writer.write(joints, t + 500_000, joint_state(float(y), t))
+    return state
+
+
+def play(bag: str, rate: float) -> None:
+    """Publish the bag's two topics (serialized, as recorded) at ``rate`` x speed."""
+    import rclpy
+    from rosbags.rosbag2 import Reader
+    from sensor_msgs.msg import JointState
+
+    rclpy.init()
+    node = rclpy.create_node("held_setpoint_player")
+    publishers = {topic: node.create_publisher(JointState, topic, 100) for topic in TOPICS.values()}
+    deadline = time.monotonic() + 60.0
+    while not all(p.get_subscription_count() for p in publishers.values()):  # the node's subscriptions
+        if time.monotonic() > deadline:
+            raise SystemExit("the node never subscribed")
+        rclpy.spin_once(node, timeout_sec=0.05)
+    with Reader(bag) as reader:
+        messages = [(log_time, connection.topic, bytes(data)) for connection, log_time, data in reader.messages()]
+    messages.sort(key=lambda m: m[0])
+    first, start = messages[0][0], time.monotonic()
+    for log_time, topic, data in messages:
+        due = start + (log_time - first) * 1e-9 / rate
+        while (left := due - time.monotonic()) > 0:  # paced as the recording
+            time.sleep(min(left, 0.01))
+        publishers[topic].publish(data)
+    print(f"played {len(messages)} messages", flush=True)
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+if __name__ == "__main__":
+    play(sys.argv[1], float(sys.argv[2]) if len(sys.argv) > 2 else 1.0)
