@@ -37,28 +37,36 @@ def pole(rate: float) -> complex:
     return complex(np.exp(complex(-ZETA * OMEGA, OMEGA * np.sqrt(1 - ZETA**2)) / rate))
 
 
-def servo(seconds: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(setpoint levels, one a second, held from second j; state at STATE_RATE; the setpoint as
+def servo(seconds: float, seed: int = 3, levels: np.ndarray | None = None, rate: float = STATE_RATE,
+          noise: float = 0.002) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(setpoint levels, one a second, held from second j; state at ``rate``; the setpoint as
     the servo saw it at each state sample). The state is the discretised loop's response (ZOH,
-    so the position at sample k depends on the setpoint up to sample k - 1) plus 0.2 % noise."""
+    so the position at sample k depends on the setpoint up to sample k - 1) plus ``noise``
+    (sd, rad). Random levels start from zero state; given ``levels`` start at rest at the first
+    one, as a robot's joint held at its first set point does."""
     rng = np.random.default_rng(seed)
-    levels = rng.uniform(-1.0, 1.0, int(seconds))
-    held = np.repeat(levels, int(STATE_RATE))
-    num, den, _ = signal.cont2discrete(([OMEGA**2], [1.0, 2 * ZETA * OMEGA, OMEGA**2]), 1 / STATE_RATE)
-    state = signal.lfilter(np.ravel(num), den, held)
-    return levels, state + 0.002 * rng.standard_normal(held.size), held
+    at_rest = levels is not None
+    levels = rng.uniform(-1.0, 1.0, int(seconds)) if levels is None else np.asarray(levels, dtype=float)
+    held = np.repeat(levels, int(rate))
+    num, den, _ = signal.cont2discrete(([OMEGA**2], [1.0, 2 * ZETA * OMEGA, OMEGA**2]), 1 / rate)
+    num = np.ravel(num)
+    zi = signal.lfilter_zi(num, den) * held[0] if at_rest else np.zeros(den.size - 1)
+    state = signal.lfilter(num, den, held, zi=zi)[0]
+    return levels, state + noise * rng.standard_normal(held.size), held
 
 
-def write_bag(path, seconds: float = 40.0, silence: tuple[float, float] | None = None, seed: int = 3) -> np.ndarray:
-    """The recording as a rosbag2 directory (MCAP storage, written by rosbags); ``silence``:
-    (start, length) s in which /joint_states publishes nothing. Returns the state samples."""
+def write_bag(path, seconds: float = 40.0, silence: tuple[float, float] | None = None, seed: int = 3,
+              levels: np.ndarray | None = None, rate: float = STATE_RATE, sqlite: bool = False) -> np.ndarray:
+    """The recording as a rosbag2 directory (MCAP storage, or SQLite as ``ros2 bag record`` wrote
+    it before Iron, written by rosbags); ``silence``: (start, length) s in which /joint_states
+    publishes nothing; ``levels``, ``rate``: as ``servo``. Returns the state samples."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_HUMBLE)
     types = store.types
-    levels, state, _ = servo(seconds, seed)
-    period_ns = int(1e9 / STATE_RATE)
+    levels, state, _ = servo(seconds, seed, levels, rate)
+    period_ns = int(1e9 / rate)
 
     def joint_state(value: float, stamp_ns: int) -> bytes:
         stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
@@ -67,15 +75,15 @@ def write_bag(path, seconds: float = 40.0, silence: tuple[float, float] | None =
             position=np.array([value]), velocity=np.array([], dtype=float), effort=np.array([], dtype=float))
         return store.serialize_cdr(msg, "sensor_msgs/msg/JointState")
 
-    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Writer(path, version=8, storage_plugin=StoragePlugin.SQLITE3 if sqlite else StoragePlugin.MCAP) as writer:
         setpoint = writer.add_connection(TOPICS["setpoint"], "sensor_msgs/msg/JointState", typestore=store)
         joints = writer.add_connection(TOPICS["state"], "sensor_msgs/msg/JointState", typestore=store)
-        per_level = int(STATE_RATE)
+        per_level = int(rate)
         for k, y in enumerate(state):
             t = START_NS + k * period_ns
             if k % per_level == 0:
                 writer.write(setpoint, t, joint_state(float(levels[k // per_level]), 0))
-            if silence is None or not silence[0] <= k / STATE_RATE < silence[0] + silence[1]:
+            if silence is None or not silence[0] <= k / rate < silence[0] + silence[1]:
                 writer.write(joints, t + 500_000, joint_state(float(y), t))
     return state
 

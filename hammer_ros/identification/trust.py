@@ -49,10 +49,14 @@ FOR_STEPS = "use --refine or plls-hammerstein (docs/methods.md, 'Step and ramp i
 
 @dataclass(frozen=True)
 class ModelWarning:
-    """One reason not to trust a model: a fixed ``code`` and a one-line ``message``."""
+    """One reason not to trust a model: a fixed ``code`` and a one-line ``message``. ``holds_back``:
+    whether an ``UNTRUSTED`` code keeps the model from being published as a confident one (False
+    for a map reduced to the gain that two input levels do determine: the model then claims no
+    more than the data show)."""
 
     code: str
     message: str
+    holds_back: bool = True
 
     def to_json(self) -> dict[str, str]:
         return {"code": self.code, "message": self.message}
@@ -64,7 +68,7 @@ def warnings_json(warnings: Iterable[ModelWarning]) -> list[dict[str, str]]:
 
 def untrusted(warnings: Iterable[ModelWarning]) -> ModelWarning | None:
     """The first warning whose code is ``UNTRUSTED``, None when there is none."""
-    return next((w for w in warnings if w.code in UNTRUSTED), None)
+    return next((w for w in warnings if w.code in UNTRUSTED and w.holds_back), None)
 
 
 def fit_warnings(fit: float | None, data: str = "its own data") -> tuple[ModelWarning, ...]:
@@ -117,8 +121,10 @@ def excitation_warnings(v: np.ndarray, y: np.ndarray, nonlinearity: Any = None,
     needed = max(map_levels_needed(nonlinearity), 3 if nonlinear_method else 0)
     if 1 < levels < needed:
         determined = "a gain (an affine map)" if levels == 2 else "a coarse map"
+        reduced = map_levels_needed(nonlinearity) <= levels  # the map returned is what the levels determine
         out.append(ModelWarning("not_exciting", f"the input takes {levels} distinct values, too few for the input "
-                                                f"map ({needed} needed): only {determined} is determined"))
+                                                f"map ({needed} needed): only {determined} is determined"
+                                + (", and the model's map is that" if reduced else ""), holds_back=not reduced))
     return tuple(out)
 
 

@@ -6,8 +6,10 @@ step over more than ``HOLD_PERIODS`` grid periods, e.g. a 1 Hz setpoint beside a
 holds each value until its next message (zero-order hold), as a controller holds its setpoint.
 Then the grid is clocked by the response (its stamps, its inferred rate, or ``sample_rate``
 anchored on it), and only a silence of the response is a gap, or a silence of the excitation
-longer than a ``max_gap`` set explicitly. An excitation at about the grid rate is aligned as
-before: the grid is clocked by it and a silence of either stream over ``max_gap`` is a gap."""
+longer than a ``max_gap`` set explicitly; a held excitation is never interpolated (a set point does
+not ramp between its messages). A response slower than the grid (``SPARSE_RESPONSE``) is interpolated
+linearly. An excitation at about the grid rate is aligned as before: the grid is clocked by it and a
+silence of either stream over ``max_gap`` is a gap."""
 
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from .config import (
     INFER_SAMPLES,
     MAX_ABS_SAMPLE,
     PENDING_SAMPLES,
+    SPARSE_RESPONSE,
     STREAMS,
     EngineConfig,
     EngineStats,
@@ -121,6 +124,7 @@ class StreamAligner:
         self.buffered = 0
         self.rate: float | None = config.sample_rate or None
         self.held: bool | None = None  # the excitation is held (see the module docstring); None: not yet known
+        self.sparse_response: bool | None = None  # the response is slower than the grid (interpolated linearly)
         self._anchor: float | None = None
         self._k = 0
         self._last_grid = -np.inf
@@ -133,7 +137,7 @@ class StreamAligner:
         self.config = config
         self.rate = config.sample_rate or self.rate
         self.stats.sample_rate = self.rate or 0.0
-        self.held = None
+        self.held = self.sparse_response = None
         self._anchor = None
         self._segment_samples = 0
         self._emit()
@@ -344,6 +348,15 @@ class StreamAligner:
             self.held = self.stats.excitation_held = ex.median_step() > HOLD_PERIODS / self.rate
         return self.held
 
+    def _response_interpolation(self) -> str:
+        """How the response is read at the grid points: linearly when it is slower than the grid
+        (its median step over SPARSE_RESPONSE grid periods, e.g. a 25 Hz sensor on a 50 Hz grid: a
+        held sensor sample would put a staircase into the dynamics), else ``interpolation``."""
+        re = self._streams["response"]
+        if self.sparse_response is None and re.size >= 2:
+            self.sparse_response = re.median_step() > SPARSE_RESPONSE / self.rate
+        return "linear" if self.sparse_response else self.config.interpolation
+
     def _next_grid_time(self, clock: _Stream, start: float, tol: float) -> float | None:
         """The first grid point not yet emitted and not before ``start`` (None: wait for data)."""
         if self.config.sample_rate:  # fixed grid t_a + k / fs
@@ -384,8 +397,8 @@ class StreamAligner:
             end = min(e for e, _ in ends.values())
             grid = self._grid_until(clock, tk, end + tol)  # from tk on
             if grid.size:
-                self._emit_grid(grid, ex.values_at(grid, tol, cfg.interpolation, starts[0]),
-                                re.values_at(grid, tol, cfg.interpolation, starts[1]))
+                self._emit_grid(grid, ex.values_at(grid, tol, "zoh" if held else cfg.interpolation, starts[0]),
+                                re.values_at(grid, tol, self._response_interpolation(), starts[1]))
                 for s in (ex, re):  # keep the last sample at or before the newest grid point
                     s.drop(max(0, int(np.searchsorted(s.t, grid[-1] + tol, side="right")) - 1))
             blocked = [(name, resume) for name, (e, resume) in ends.items() if resume is not None and e <= end]

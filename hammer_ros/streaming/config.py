@@ -27,6 +27,7 @@ PENDING_SAMPLES = 2_000_000  # per stream, waiting for the other stream (32 MB);
 CLOCK_RESET_SECONDS = 1.0  # a stamp this much (or max_gap, if longer) older than its stream's newest: clock reset
 STREAMS = ("excitation", "response")
 HOLD_PERIODS = 4.0  # an excitation whose median step is longer than this many grid periods is held (aligner)
+SPARSE_RESPONSE = 1.5  # a response whose median step exceeds this many grid periods is interpolated linearly
 _FIELD_KINDS = {"sample_rate": float, "window": int, "forgetting": float, "tau_max": int, "method": str, "order": int,
                 "delay": int, "mu": int, "poly": int, "partition": tuple, "interpolation": str, "max_gap": float,
                 "min_fill": float, "min_excitation": float, "refine": bool, "max_relative_sd": float}

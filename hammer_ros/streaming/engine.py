@@ -378,7 +378,7 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
 
                 result = refine_result(result, refinement_input(v, reference), y)
             doc = result.to_json(v, y) if document else None
-            fit = doc.get("fit_percent") if document else fit_percent(y, result.simulate(v))
+            fit = doc.get("fit_percent") if document else fit_percent(y, result.free_run(v, y))
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
         status, reason = _failure(cfg.method, exc)
         return estimate(status=status, reason=reason)
@@ -493,7 +493,7 @@ def _published_fits_better(published: IdentificationResult | None, v: np.ndarray
     simulate it better than the instrumented one."""
     if published is None:
         return ""
-    old_fit = fit_percent(y, published.simulate(v))
+    old_fit = fit_percent(y, published.free_run(v, y))
     new = -np.inf if new_fit is None or not math.isfinite(new_fit) else new_fit
     if not np.isfinite(old_fit) or new >= old_fit - KEEP_MARGIN:
         return ""
