@@ -409,18 +409,19 @@ def cls_from_correlations(
 
 
 def compiled_steps(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int,
-                   mu: int, poly: int) -> tuple[HammersteinEstimate, Uncertainty | None] | None:
-    """``correlation_least_squares_steps`` (a polynomial F) and its ``cls_uncertainty`` by the numba kernel
-    ``cls_kernel.cls_solve``: (estimate, bounds), the bounds None where the kernel leaves them to the
-    reference; None where the reference must decide about the estimate (it raises or takes another branch)."""
+                   mu: int, poly: int, bounds: bool = True) -> tuple[HammersteinEstimate, Uncertainty | None] | None:
+    """``correlation_least_squares_steps`` (a polynomial F) and, with ``bounds``, its ``cls_uncertainty`` by
+    the numba kernel ``cls_kernel.cls_solve``: (estimate, bounds), the bounds None without ``bounds`` or
+    where the kernel leaves them to the reference; None where the reference must decide about the
+    estimate (it raises or takes another branch)."""
     from .cls_kernel import OK, cls_solve
 
     arrays = [np.ascontiguousarray(x, dtype=float).ravel() for x in (phi_vv, phi_yv, v, y)]
     if arrays[0].size != arrays[1].size or arrays[2].size != arrays[3].size:
         return None
     try:
-        (status, a, coefficients, numerator, denominator, gamma, slope, bounds_status, poles_std, zeros_std,
-         gain_std, map_covariance, blocks) = cls_solve(*arrays, int(order), int(delay), int(mu), int(poly), True)
+        (status, a, coefficients, numerator, denominator, gamma, slope, bounds_status, poles_std, zeros_std, gain_std,
+         map_covariance, blocks) = cls_solve(*arrays, int(order), int(delay), int(mu), int(poly), bool(bounds))
     except (np.linalg.LinAlgError, ValueError, ZeroDivisionError):
         return None
     if status != OK:
