@@ -32,6 +32,56 @@ _TINY = np.finfo(np.float64).tiny
 _jit = numba.njit(cache=True, nogil=True)
 
 
+# --- the long loops: each a whole function (not a call per sum), their sums reassociated so that the
+# compiler vectorises them (NaN and inf kept)
+
+CHUNK = 512  # samples per pass of the long loops: their operands stay in the L1 cache across the taps / lags
+_fast = numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
+
+
+@_jit
+def _axpy(out, alpha, x):
+    """out += alpha x, element by element (out and x of one length)."""
+    for k in range(out.size):
+        out[k] += alpha * x[k]
+
+
+@_fast
+def _dot(x, z):
+    """x . z."""
+    total = 0.0
+    for k in range(x.size):
+        total += x[k] * z[k]
+    return total
+
+
+@_fast
+def _lagged_dots(x, z, start, out):
+    """out[t] += sum_i x[i] z[start - t + i] for t < out.size: x against z at consecutive lags."""
+    for t in range(out.size):
+        window = z[start - t : start - t + x.size]
+        total = 0.0
+        for i in range(x.size):
+            total += x[i] * window[i]
+        out[t] += total
+
+
+@_fast
+def _fir(x, taps, rows, out):
+    """out[k] += sum_t taps[t] x[k + m - 1 - t], k < rows (np.convolve(x, taps, "valid")), tap by tap
+    over chunks of CHUNK outputs."""
+    m = taps.size
+    for begin in range(0, rows, CHUNK):
+        end = min(begin + CHUNK, rows)
+        chunk = out[begin:end]
+        for t in range(m):
+            tap = taps[t]
+            if tap != 0.0:
+                window = x[begin + m - 1 - t : end + m - 1 - t]
+                for k in range(chunk.size):
+                    chunk[k] += tap * window[k]
+
+
 # --- small linear algebra ------------------------------------------------------------------------
 
 
@@ -81,15 +131,13 @@ def _householder_solve(columns, target):
     r = np.zeros((q, q))
     for j in range(q):
         x = m[j, j:]
-        norm = np.sqrt(np.dot(x, x))
+        norm = np.sqrt(_dot(x, x))
         alpha = -norm if x[0] >= 0.0 else norm
         x[0] -= alpha  # x is now the reflector's vector v; H = I - 2 v v^T / v^T v
-        beta = np.dot(x, x)
+        beta = _dot(x, x)
         for c in range(j + 1, q + 1):
-            other = m[c, j:]
-            factor = 2.0 * np.dot(x, other) / beta if beta > 0.0 else 0.0
-            for k in range(other.size):
-                other[k] -= factor * x[k]
+            factor = 2.0 * _dot(x, m[c, j:]) / beta if beta > 0.0 else 0.0
+            _axpy(m[c, j:], -factor, x)
         r[j, j] = alpha
         for c in range(j + 1, q):
             r[j, c] = m[c, j]
@@ -98,6 +146,36 @@ def _householder_solve(columns, target):
     rhs = np.empty((q, 1))
     rhs[:, 0] = m[q, :q]
     return _back_substitute(r, rhs)[:, 0]
+
+
+@_jit
+def _inverse(a):
+    """(a^-1, True) by Gauss-Jordan elimination with partial pivoting, or (zeros, False) for a singular
+    or non-finite a (where ``np.linalg.inv`` raises)."""
+    n = a.shape[0]
+    m = a.copy()
+    out = np.eye(n)
+    for j in range(n):
+        pivot = j
+        for i in range(j + 1, n):
+            if abs(m[i, j]) > abs(m[pivot, j]):
+                pivot = i
+        if not (m[pivot, j] != 0.0 and np.isfinite(m[pivot, j])):
+            return out, False
+        for k in range(n):
+            m[j, k], m[pivot, k] = m[pivot, k], m[j, k]
+            out[j, k], out[pivot, k] = out[pivot, k], out[j, k]
+        scale = m[j, j]
+        for k in range(n):
+            m[j, k] /= scale
+            out[j, k] /= scale
+        for i in range(n):
+            if i != j:
+                factor = m[i, j]
+                for k in range(n):
+                    m[i, k] -= factor * m[j, k]
+                    out[i, k] -= factor * out[j, k]
+    return out, True
 
 
 @_jit
@@ -335,7 +413,8 @@ def _era(h, order, delay):
     c = un[0] * root
     eigenvalues = _eigenvalues(a)
     denominator = _polynomial_from_roots(eigenvalues)
-    numerator = _polynomial_from_roots(_eigenvalues(a - np.outer(b, c))) - denominator + h[0] * denominator
+    numerator = _characteristic_polynomials((a - np.outer(b, c)).reshape(1, order, order))[0] - denominator
+    numerator += h[0] * denominator
     numerator[:delay] = 0.0
     return True, a, b, c, eigenvalues, numerator, denominator, u, s, vt
 
@@ -411,37 +490,6 @@ def _era_root_std(h, order, delay, covariance, a, b, c, eigenvalues, u, s, vt):
 
 
 # --- the solve -------------------------------------------------------------------------------------
-
-
-CHUNK = 512  # samples per pass of the long loops: their operands stay in the L1 cache across the taps / lags
-
-
-@_jit
-def _axpy(out, alpha, x):
-    """out += alpha x, element by element (out and x of one length: a loop the compiler vectorises)."""
-    for k in range(out.size):
-        out[k] += alpha * x[k]
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})
-def _dot(x, z):
-    """x . z, its sum reassociated so that the compiler vectorises it (NaN and inf kept)."""
-    total = 0.0
-    for k in range(x.size):
-        total += x[k] * z[k]
-    return total
-
-
-@_jit
-def _fir(x, taps, rows, out):
-    """out[k] += sum_t taps[t] x[k + m - 1 - t], k < rows (np.convolve(x, taps, "valid")), tap by tap
-    over chunks of CHUNK outputs."""
-    m = taps.size
-    for begin in range(0, rows, CHUNK):
-        end = min(begin + CHUNK, rows)
-        for t in range(m):
-            if taps[t] != 0.0:
-                _axpy(out[begin:end], taps[t], x[m - 1 - t + begin : m - 1 - t + end])
 
 
 @_jit
@@ -545,21 +593,16 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
     taps[input_lags] = coefficients
     filtered_y = y.copy()  # A_hat(q^-1) y, lag by lag (``regression.filtered_output``)
     for j in range(n):
-        lag, coefficient = output_lags[j], a[j]
-        for k in range(samples - 1, lag - 1, -1):
-            filtered_y[k] += coefficient * y[k - lag]
+        _axpy(filtered_y[output_lags[j] :], a[j], y[: samples - output_lags[j]])
     rows2 = samples - first
     target = np.ascontiguousarray(filtered_y[first:])
-    basis = np.empty((q, samples))  # the columns 1, v, .., v^p, each a row here
-    basis[0] = 1.0
-    if q > 1:
-        basis[1] = v
-    for power in range(2, q):
-        basis[power] = basis[power - 1] * v
-    regressors = np.zeros((q, rows2))  # B_hat(q^-1) of each (``regression.filtered_basis``)
+    regressors = np.zeros((q, rows2))  # B_hat(q^-1) of the basis 1, v, .., v^p (``regression.filtered_basis``)
     regressors[0] = taps.sum()
+    power_of_v = v.copy()
     for power in range(1, q):
-        _fir(basis[power], taps, rows2, regressors[power])
+        if power > 1:
+            power_of_v *= v
+        _fir(power_of_v, taps, rows2, regressors[power])
     gamma = _householder_solve(regressors, target)
     if gamma.size == 0:
         return failed
@@ -587,13 +630,11 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
     blocks = max(2, min(BLOCKS, centres // MIN_BLOCK))
     length = centres // blocks
     lo = first - tau_max  # the step-1 rows' lags lo..tau_max
-    r_blocks = np.empty((blocks, rows1))
-    for b in range(blocks):
+    r_blocks = np.zeros((blocks, rows1))
+    for b in range(blocks):  # r_b(tau) = sum_k w(k) v(k - tau) over the block, tau = lo + t
         start = tau_max + length * b
-        block = w[start : start + length]
-        for t in range(rows1):
-            shift = start - lo - t  # v(k - tau), tau = lo + t
-            r_blocks[b, t] = _dot(block, v[shift : shift + length]) / centres
+        _lagged_dots(w[start : start + length], v, start - lo, r_blocks[b])
+    r_blocks /= centres
     g1 = (r_blocks @ pseudo_inverse.T) * np.sqrt(centres / (blocks * length))
     g1_lin = np.ascontiguousarray(g1[:, : p - 1])
     cov1 = _batch_means_covariance(g1_lin)
@@ -609,21 +650,25 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
 
     # bounds, step 2: its own influences and step 1's through dgamma/dtheta_1 (normal equations)
     gram = regressors @ regressors.T
-    normal_inverse = np.linalg.inv(gram)
+    normal_inverse, ok = _inverse(gram)
+    if not ok:
+        return (OK, a, coefficients, numerator, denominator, gamma, slope, FALLBACK, none2, none2, 0.0,
+                np.zeros((0, 0)), blocks)
     gamma_n = normal_inverse @ (regressors @ target)
     residual = target - gamma_n @ regressors
-    mapped = gamma_n @ basis
-    products = np.zeros((q, n + input_lags.size))  # R^T D, over chunks of CHUNK rows
+    mapped = np.full(samples, gamma_n[q - 1])  # F_gamma(v) by Horner's rule
+    for power in range(q - 2, -1, -1):
+        for k in range(samples):
+            mapped[k] = mapped[k] * v[k] + gamma_n[power]
+    # R^T D over chunks of CHUNK rows: the output lags mu..mu+n-1 and the input lags d..n+mu-1 are consecutive
+    lagged_y, lagged_map = np.zeros((q, n)), np.zeros((q, input_lags.size))
     for begin in range(0, rows2, CHUNK):
         end = min(begin + CHUNK, rows2)
         for e in range(q):
-            column = regressors[e, begin:end]
-            for j in range(n):
-                shift = first - output_lags[j]
-                products[e, j] += _dot(column, y[shift + begin : shift + end])
-            for i in range(input_lags.size):
-                shift = first - input_lags[i]
-                products[e, n + i] -= _dot(mapped[shift + begin : shift + end], column)
+            _lagged_dots(regressors[e, begin:end], y, first - output_lags[0] + begin, lagged_y[e])
+            _lagged_dots(regressors[e, begin:end], mapped, first - input_lags[0] + begin, lagged_map[e])
+    products = np.empty((q, n + input_lags.size))
+    products[:, :n], products[:, n:] = lagged_y, -lagged_map
     sensitivity = normal_inverse @ products
     scores = np.zeros((blocks, q))
     for b in range(blocks):
