@@ -67,6 +67,27 @@ def _lagged_dots(x, z, start, out):
 
 
 @_fast
+def _all_finite(x):
+    """No NaN or inf in x (x * 0 is NaN for both)."""
+    total = 0.0
+    for k in range(x.size):
+        total += x[k] * 0.0
+    return total == 0.0
+
+
+@_jit
+def _window_sums(z, start, length, out):
+    """out[t] = sum_i z[start - t + i], i < length, for t < out.size: one window summed, then moved."""
+    total = 0.0
+    for i in range(length):
+        total += z[start + i]
+    out[0] = total
+    for t in range(1, out.size):
+        total += z[start - t] - z[start - t + length]
+        out[t] = total
+
+
+@_fast
 def _fir(x, taps, rows, out):
     """out[k] += sum_t taps[t] x[k + m - 1 - t], k < rows (np.convolve(x, taps, "valid")), tap by tap
     over chunks of CHUNK outputs."""
@@ -540,9 +561,7 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
               none2, none2, 0.0, np.zeros((0, 0)), 0)
     finite = True
     for x in (phi_vv, phi_yv, v, y):
-        for k in range(x.size):
-            if not np.isfinite(x[k]):
-                finite = False
+        finite = finite and _all_finite(x)
     if not finite or samples <= first + q or poly < 1 or mu < 1 or delay < 0 or delay > n or n < 1:
         return failed
 
@@ -661,10 +680,15 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
         for k in range(samples):
             mapped[k] = mapped[k] * v[k] + gamma_n[power]
     # R^T D over chunks of CHUNK rows: the output lags mu..mu+n-1 and the input lags d..n+mu-1 are consecutive
+    # (the constant regressor's: its value times sums of windows)
     lagged_y, lagged_map = np.zeros((q, n)), np.zeros((q, input_lags.size))
+    _window_sums(y, first - output_lags[0], rows2, lagged_y[0])
+    _window_sums(mapped, first - input_lags[0], rows2, lagged_map[0])
+    lagged_y[0] *= regressors[0, 0]
+    lagged_map[0] *= regressors[0, 0]
     for begin in range(0, rows2, CHUNK):
         end = min(begin + CHUNK, rows2)
-        for e in range(q):
+        for e in range(1, q):
             _lagged_dots(regressors[e, begin:end], y, first - output_lags[0] + begin, lagged_y[e])
             _lagged_dots(regressors[e, begin:end], mapped, first - input_lags[0] + begin, lagged_map[e])
     products = np.empty((q, n + input_lags.size))
