@@ -57,13 +57,30 @@ def _dot(x, z):
 
 @_fast
 def _lagged_dots(x, z, start, out):
-    """out[t] += sum_i x[i] z[start - t + i] for t < out.size: x against z at consecutive lags."""
-    for t in range(out.size):
-        window = z[start - t : start - t + x.size]
+    """out[t] += sum_i x[i] z[start - t + i] for t < out.size (start - t >= 0): x against z at consecutive
+    lags, four lags per pass over x."""
+    n = x.size
+    t = 0
+    while t + 4 <= out.size:
+        z0, z1 = z[start - t : start - t + n], z[start - t - 1 : start - t - 1 + n]
+        z2, z3 = z[start - t - 2 : start - t - 2 + n], z[start - t - 3 : start - t - 3 + n]
+        s0 = s1 = s2 = s3 = 0.0
+        for i in range(n):
+            s0 += x[i] * z0[i]
+            s1 += x[i] * z1[i]
+            s2 += x[i] * z2[i]
+            s3 += x[i] * z3[i]
+        out[t] += s0
+        out[t + 1] += s1
+        out[t + 2] += s2
+        out[t + 3] += s3
+        t += 4
+    for rest in range(t, out.size):
+        window = z[start - rest : start - rest + n]
         total = 0.0
-        for i in range(x.size):
+        for i in range(n):
             total += x[i] * window[i]
-        out[t] += total
+        out[rest] += total
 
 
 @_fast
@@ -89,18 +106,25 @@ def _window_sums(z, start, length, out):
 
 @_fast
 def _fir(x, taps, rows, out):
-    """out[k] += sum_t taps[t] x[k + m - 1 - t], k < rows (np.convolve(x, taps, "valid")), tap by tap
+    """out[k] += sum_t taps[t] x[k + m - 1 - t], k < rows (np.convolve(x, taps, "valid")), four taps per pass
     over chunks of CHUNK outputs."""
     m = taps.size
     for begin in range(0, rows, CHUNK):
         end = min(begin + CHUNK, rows)
         chunk = out[begin:end]
-        for t in range(m):
-            tap = taps[t]
-            if tap != 0.0:
-                window = x[begin + m - 1 - t : end + m - 1 - t]
-                for k in range(chunk.size):
-                    chunk[k] += tap * window[k]
+        t = 0
+        while t + 4 <= m:
+            c0, c1, c2, c3 = taps[t], taps[t + 1], taps[t + 2], taps[t + 3]
+            shift = m - 1 - t
+            x0, x1 = x[begin + shift : end + shift], x[begin + shift - 1 : end + shift - 1]
+            x2, x3 = x[begin + shift - 2 : end + shift - 2], x[begin + shift - 3 : end + shift - 3]
+            for k in range(chunk.size):
+                chunk[k] += c0 * x0[k] + c1 * x1[k] + c2 * x2[k] + c3 * x3[k]
+            t += 4
+        for rest in range(t, m):
+            window = x[begin + m - 1 - rest : end + m - 1 - rest]
+            for k in range(chunk.size):
+                chunk[k] += taps[rest] * window[k]
 
 
 # --- small linear algebra ------------------------------------------------------------------------
@@ -434,8 +458,7 @@ def _era(h, order, delay):
     c = un[0] * root
     eigenvalues = _eigenvalues(a)
     denominator = _polynomial_from_roots(eigenvalues)
-    numerator = _characteristic_polynomials((a - np.outer(b, c)).reshape(1, order, order))[0] - denominator
-    numerator += h[0] * denominator
+    numerator = _polynomial_from_roots(_eigenvalues(a - np.outer(b, c))) - denominator + h[0] * denominator
     numerator[:delay] = 0.0
     return True, a, b, c, eigenvalues, numerator, denominator, u, s, vt
 
