@@ -588,7 +588,7 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
     if not finite or samples <= first + q or poly < 1 or mu < 1 or delay < 0 or delay > n or n < 1:
         return failed
 
-    # step 1: X theta = z over the correlation lags, with an intercept; X^+ = R^-1 Q^T
+    # step 1: X theta = z over the correlation lags, with an intercept; X^+ = R^-1 Q^T (X = Q R)
     lags_total = phi_vv.size
     tau_max = (lags_total - 1) // 2
     rows1 = lags_total - first
@@ -606,8 +606,8 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
     qm, rm = np.linalg.qr(x)
     if not _well_conditioned(rm):
         return failed
-    pseudo_inverse = _back_substitute(rm, np.ascontiguousarray(qm.T))
-    theta = pseudo_inverse @ np.ascontiguousarray(phi_yv[first:])
+    q_transposed = np.ascontiguousarray(qm.T)
+    theta = _back_substitute(rm, (q_transposed @ np.ascontiguousarray(phi_yv[first:])).reshape(p, 1))[:, 0]
     a = theta[:n].copy()
     coefficients = theta[n : p - 1].copy()
 
@@ -677,7 +677,7 @@ def cls_solve(phi_vv, phi_yv, v, y, order, delay, mu, poly, bounds):
         start = tau_max + length * b
         _lagged_dots(w[start : start + length], v, start - lo, r_blocks[b])
     r_blocks /= centres
-    g1 = (r_blocks @ pseudo_inverse.T) * np.sqrt(centres / (blocks * length))
+    g1 = _back_substitute(rm, q_transposed @ r_blocks.T).T * np.sqrt(centres / (blocks * length))  # X^+ r_b
     g1_lin = np.ascontiguousarray(g1[:, : p - 1])
     cov1 = _batch_means_covariance(g1_lin)
     if mu == 1:

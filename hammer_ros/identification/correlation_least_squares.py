@@ -427,11 +427,11 @@ def compiled_steps(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.
     if status != OK:
         return None
     if mu == 1:
-        step1 = linear_estimate(a, coefficients, order, delay, mu)
-    else:
-        markov = np.concatenate([np.zeros(delay), coefficients[:mu]])
-        step1 = LinearEstimate(LinearModel(numerator, denominator), markov, a, coefficients, delay, mu)
-    estimate = HammersteinEstimate(step1.scaled(slope), PolynomialMap(gamma / slope))
+        linear = linear_estimate(a, coefficients, order, delay, mu).scaled(slope)
+    else:  # LinearEstimate(LinearModel(numerator, denominator), ...).scaled(slope) in one (denominator[0] = 1)
+        markov = np.concatenate([np.zeros(delay), coefficients[:mu]]) * slope
+        linear = LinearEstimate(LinearModel(numerator * slope, denominator), markov, a, coefficients * slope, delay, mu)
+    estimate = HammersteinEstimate(linear, PolynomialMap(gamma / slope))
     if bounds_status != OK:
         return estimate, None
     return estimate, Uncertainty(poles_std, zeros_std, float(gain_std), map_covariance, CLS_HOW.format(blocks=blocks))
