@@ -481,13 +481,14 @@ def _era_root_std(h, order, delay, covariance, a, b, c, eigenvalues, u, s, vt):
     projector_first = -vt[:order].T @ np.ascontiguousarray(vt[:order, 0])  # (I - V V^T) e_1
     projector_first[0] += 1.0
     span = rows + columns - 1
-    k_a, k_b = np.zeros((span, order, order)), np.zeros((span, order))
+    k_a, k_b = np.zeros((order, order, span)), np.zeros((order, span))  # K_m[p, q] as k_a[p, q, m]
     for i in range(rows):
         for j in range(columns):
             for p in range(order):
-                k_b[i + j, p] += o_plus[p, i] * projector_first[j]
+                k_b[p, i + j] += o_plus[p, i] * projector_first[j]
                 for q in range(order):
-                    k_a[i + j, p, q] += o_plus[p, i] * c_plus[j, q]
+                    k_a[p, q, i + j] += o_plus[p, i] * c_plus[j, q]
+    c_plus_t = np.ascontiguousarray(c_plus.T)
     sqrt_cov = _square_root(covariance)
     count = sqrt_cov.shape[1] + 1
     directions = np.zeros((count, h.size))
@@ -496,18 +497,13 @@ def _era_root_std(h, order, delay, covariance, a, b, c, eigenvalues, u, s, vt):
     first_part, second_part = np.empty((order, order)), np.empty((order, order))  # O^+ dH(0) C^+, O^+ dH(1) C^+
     big_b, big_c = np.empty(order), np.empty(order)
     for r in range(count):
-        d = directions[r]
+        d0, d1 = directions[r, 1 : 1 + span], directions[r, 2 : 2 + span]  # dh_(1+m), dh_(2+m)
         for p in range(order):
-            big_b[p], big_c[p] = b[p], c[p]
             for q in range(order):
-                first_part[p, q], second_part[p, q] = 0.0, 0.0
-                for m in range(span):
-                    first_part[p, q] += d[1 + m] * k_a[m, p, q]
-                    second_part[p, q] += d[2 + m] * k_a[m, p, q]
-            for m in range(span):
-                big_b[p] += d[1 + m] * k_b[m, p]
-            for j in range(columns):
-                big_c[p] += d[1 + j] * c_plus[j, p]
+                first_part[p, q] = _dot(d0, k_a[p, q])
+                second_part[p, q] = _dot(d1, k_a[p, q])
+            big_b[p] = b[p] + _dot(d0, k_b[p])
+            big_c[p] = c[p] + _dot(d0[:columns], c_plus_t[p])
         for p in range(order):
             for q in range(order):
                 change = second_part[p, q]
