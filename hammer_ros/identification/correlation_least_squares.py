@@ -386,25 +386,20 @@ def cls_from_correlations(
     mu = _mu(structure, options.mu)
     extra = ({"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
              | ({"instrument": "reference"} if instrument is not None else {}))
+    estimate = uncertainty = None
     if compiled is not False and instrument is None and options.partition is None and numba_enabled():
-        solved = compiled_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly)
-        if solved is not None:
-            estimate, uncertainty = solved
-            if compiled == "bounds":
-                estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                                           options.poly)
-            if uncertainty is None:
-                uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                                              *_step_two_map(np.asarray(v, dtype=float),
-                                                                             options.poly, None)))
-            return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
-    estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
-                                               options.partition, instrument)
+        estimate, uncertainty = compiled_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                               options.poly) or (None, None)
+    if estimate is None or compiled == "bounds":
+        estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                   options.poly, options.partition, instrument)
     if instrument is not None:  # the bounds' influences are those of the correlations with v, not with r
         return _result(f"cls-{structure}", estimate, options.order, extra)
-    partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
-    uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition)))
+    if uncertainty is None:
+        partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
+        uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                      *_step_two_map(np.asarray(v, dtype=float), options.poly,
+                                                                     partition)))
     return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
 
 
