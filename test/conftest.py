@@ -24,8 +24,20 @@ def g1() -> LinearModel:
     return G1
 
 
+@pytest.fixture(scope="session")
+def compiled_solve() -> None:
+    """The compiled CLS solve (``cls_kernel``) loaded once per session: on a fresh checkout numba compiles
+    it into its cache here (30-80 s on the loaded 2-core test machine), not inside a live test's timeout;
+    the processes a test starts load it from that cache."""
+    from hammer_ros.identification.correlation_least_squares import compiled_steps, correlation_functions
+
+    v = np.random.default_rng(0).standard_normal(600)
+    y = np.convolve(v, [0.0, 1.0, 0.5])[: v.size]
+    compiled_steps(*correlation_functions(v, y, 66), v, y, 3, 1, 30, 3)
+
+
 @pytest.fixture
-def ros_env(tmp_path):
+def ros_env(tmp_path, compiled_solve):
     """Environment for one test's ROS processes: its own ROS_DOMAIN_ID, loopback only.
 
     The domain id is leased exclusively (``ros_env.DomainLease``: an flock per id), so parallel

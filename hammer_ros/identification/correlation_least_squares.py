@@ -31,10 +31,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import numpy as np
 
 from ..errors import IdentificationError
+from .compiled_loops import numba_enabled
 from .correlation import auto_correlation, cross_correlation
 from .era import eigensystem_realization
 from .instrumental import check_reference, reference_part, solve_instrumental
@@ -54,7 +56,7 @@ from .result import IdentificationResult
 from .runs import Runs, several
 from .simulate import simulate_hammerstein
 from .static_maps import PiecewiseLinearMap, PolynomialMap, map_parameters
-from .uncertainty import Uncertainty, cls_uncertainty, era_root_std, guarded, propagate, regression_covariance
+from .uncertainty import CLS_HOW, Uncertainty, cls_uncertainty, era_root_std, guarded, propagate, regression_covariance
 
 DEFAULT_MU = 30
 STRUCTURES = ("arx", "markov")
@@ -382,7 +384,7 @@ def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
     reference, runs = check_reference(options.reference, np.size(v)), options.runs
     if reference is None:
         phi_vv, phi_yv = correlation_functions(v, y, tau_max, runs)
-        return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure)
+        return cls_from_correlations(phi_vv, phi_yv, v, y, options, structure, compiled="bounds")
     try:
         phi_vr, phi_yr = (cross_correlation(reference, x, tau_max, runs) for x in _check_record(v, y))
     except ValueError as exc:
@@ -393,24 +395,67 @@ def identify_cls(v: np.ndarray, y: np.ndarray, options, structure: str = "arx") 
 
 def cls_from_correlations(
     phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, options, structure: str = "arx",
-    instrument: np.ndarray | None = None,
+    instrument: np.ndarray | None = None, compiled: bool | Literal["bounds"] | None = None,
 ) -> IdentificationResult:
     """``identify_cls`` on given correlation functions (tau_max = (len - 1) / 2), e.g. the
     streaming engine's window sums; (v, y) is the raw window for step 2 (``instrument``: see
     ``correlation_least_squares_steps``; ``options.runs``: the runs of (v, y), the correlations
-    made with them)."""
+    made with them).
+
+    ``compiled``: None = the numba kernel ``cls_kernel.cls_solve`` for the estimate and its bounds
+    where it applies (a polynomial F, no instrument) and numba is available
+    (``compiled_loops.numba_enabled``): what the streaming engine solves with; False = the numpy
+    reference; "bounds" = the reference's estimate (bit for bit: ``identify`` and ``reproduce``
+    print it to the last digit) with the kernel's bounds (equal to the reference's to rounding).
+    Several runs: the reference (the kernel's step 2 takes one continuous record)."""
     mu = _mu(structure, options.mu)
-    estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu, options.poly,
-                                               options.partition, instrument, options.runs)
     extra = ({"tau_max": (np.size(phi_vv) - 1) // 2} | ({"mu": mu} if mu > 1 else {})
              | ({"instrument": "reference"} if instrument is not None else {}))
+    estimate = uncertainty = None
+    if (compiled is not False and instrument is None and options.partition is None and several(options.runs) is None
+            and numba_enabled()):
+        estimate, uncertainty = compiled_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                               options.poly) or (None, None)
+    if estimate is None or compiled == "bounds":
+        estimate = correlation_least_squares_steps(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                   options.poly, options.partition, instrument, options.runs)
     if instrument is not None:  # the bounds' influences are those of the correlations with v, not with r
         return _result(f"cls-{structure}", estimate, options.order, extra)
-    partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
-    uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
-                                                  *_step_two_map(np.asarray(v, dtype=float), options.poly, partition),
-                                                  runs=options.runs))
+    if uncertainty is None:
+        partition = None if options.partition is None else np.asarray(options.partition, dtype=float)
+        uncertainty = guarded(lambda: cls_uncertainty(phi_vv, phi_yv, v, y, options.order, options.delay, mu,
+                                                      *_step_two_map(np.asarray(v, dtype=float), options.poly,
+                                                                     partition), runs=options.runs))
     return _result(f"cls-{structure}", estimate, options.order, extra, uncertainty)
+
+
+def compiled_steps(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np.ndarray, order: int, delay: int,
+                   mu: int, poly: int, bounds: bool = True) -> tuple[HammersteinEstimate, Uncertainty | None] | None:
+    """``correlation_least_squares_steps`` (a polynomial F) and, with ``bounds``, its ``cls_uncertainty`` by
+    the numba kernel ``cls_kernel.cls_solve``: (estimate, bounds), the bounds None without ``bounds`` or
+    where the kernel leaves them to the reference; None where the reference must decide about the
+    estimate (it raises or takes another branch)."""
+    from .cls_kernel import OK, cls_solve
+
+    arrays = [np.ascontiguousarray(x, dtype=float).ravel() for x in (phi_vv, phi_yv, v, y)]
+    if arrays[0].size != arrays[1].size or arrays[2].size != arrays[3].size:
+        return None
+    try:
+        (status, a, coefficients, numerator, denominator, gamma, slope, bounds_status, poles_std, zeros_std, gain_std,
+         map_covariance, blocks) = cls_solve(*arrays, int(order), int(delay), int(mu), int(poly), bool(bounds))
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError):
+        return None
+    if status != OK:
+        return None
+    if mu == 1:
+        linear = linear_estimate(a, coefficients, order, delay, mu).scaled(slope)
+    else:  # LinearEstimate(LinearModel(numerator, denominator), ...).scaled(slope) in one (denominator[0] = 1)
+        markov = np.concatenate([np.zeros(delay), coefficients[:mu]]) * slope
+        linear = LinearEstimate(LinearModel(numerator * slope, denominator), markov, a, coefficients * slope, delay, mu)
+    estimate = HammersteinEstimate(linear, PolynomialMap(gamma / slope))
+    if bounds_status != OK:
+        return estimate, None
+    return estimate, Uncertainty(poles_std, zeros_std, float(gain_std), map_covariance, CLS_HOW.format(blocks=blocks))
 
 
 def _step_two_map(v: np.ndarray, poly: int, partition: np.ndarray | None):

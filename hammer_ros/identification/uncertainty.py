@@ -45,6 +45,7 @@ BLOCKS = 32  # batch means: blocks of the record (the sd to ~13 %)
 MIN_BLOCK = 16  # samples per block at least (fewer blocks on a short record)
 STEP = 1e-3  # numerical derivative step, in standard deviations along a square root of Cov
 RANK_TOLERANCE = 1e-12  # eigenvalues of Cov below this x the largest are dropped from its square root
+CLS_HOW = "cls: batch means over {blocks} blocks of both steps' influences, first-order propagation"
 
 
 @dataclass(frozen=True, eq=False)
@@ -323,8 +324,7 @@ def cls_uncertainty(phi_vv: np.ndarray, phi_yv: np.ndarray, v: np.ndarray, y: np
         return np.zeros(0), np.zeros(0), np.concatenate([[t[0] * scale], parameters])
 
     _, _, cov = propagate(gain_and_map, np.concatenate([[coefficients[0]], gamma]), batch_means_covariance(joint))
-    how = f"cls: batch means over {blocks} blocks of both steps' influences, first-order propagation"
-    return Uncertainty(poles_std, zeros_std, float(np.sqrt(cov[0, 0])), cov[1:, 1:], how)
+    return Uncertainty(poles_std, zeros_std, float(np.sqrt(cov[0, 0])), cov[1:, 1:], CLS_HOW.format(blocks=blocks))
 
 
 def _run_blocks(runs, w: np.ndarray, v: np.ndarray, tau: np.ndarray, tau_max: int, first: int,

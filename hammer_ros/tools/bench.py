@@ -945,11 +945,58 @@ def diagnose_latencies(window: int, repeats: int) -> dict[str, Any]:
     return {"p50": 1e3 * _percentile(times, 50), "p99": 1e3 * _percentile(times, 99), "n": repeats}
 
 
+COMPILED_GOAL = 4.0  # the compiled CLS solve with its bounds, x faster than the numpy reference (issue 52)
+
+
+def compiled_solve_rows(window: int, repeats: int) -> list[dict[str, Any]]:
+    """The CLS mu-Markov solve from an engine snapshot's correlation sums (order 3, mu 30, tau_max 66)
+    with and without its bounds: the numba kernel (``cls_kernel``) beside the numpy reference, the four
+    in turn on the same snapshot (the same load for each), p50 / p99 over ``repeats`` solves each; the
+    poles of the two must agree to 1e-7."""
+    from ..identification.correlation_least_squares import (
+        cls_from_correlations,
+        compiled_steps,
+        correlation_least_squares_steps,
+    )
+
+    case = SolveCase("cls-markov", default_tau_max(3, DEFAULT_MU), DEFAULT_MU)
+    v, y = hammerstein_record(window, seed=4)
+    snap = feed_engine(case.config(window), v, y, chunk=1000).snapshot()
+    options = case.config(window).identify_options()
+    data, model = (snap.phi_vv, snap.phi_yv, snap.v, snap.y), (options.order, options.delay, DEFAULT_MU, options.poly)
+    variants = {("with bounds", "compiled"): lambda: cls_from_correlations(*data, options, "markov"),
+                ("with bounds", "reference"): lambda: cls_from_correlations(*data, options, "markov", compiled=False),
+                ("without bounds", "compiled"): lambda: compiled_steps(*data, *model, bounds=False)[0],
+                ("without bounds", "reference"): lambda: correlation_least_squares_steps(*data, *model)}
+    found = {key: solve() for key, solve in variants.items()}  # the warm-up (numba's cache loaded)
+    times: dict[tuple[str, str], list[float]] = {key: [] for key in variants}
+    for _ in range(repeats):
+        for key, solve in variants.items():
+            times[key].append(_timed(solve)[0])
+    rows = []
+    for bounds in ("with bounds", "without bounds"):
+        compiled, reference = found[bounds, "compiled"], found[bounds, "reference"]
+        linear = (compiled.linear.linear, reference.linear.linear) if bounds == "without bounds" else (
+            compiled.linear, reference.linear)
+        same = bool(np.max(np.abs(linear[0].poles - linear[1].poles)) <= 1e-7)
+        row = {"case": f"{case.label}, the solve from the sums {bounds}: compiled (reference: numpy)",
+               "method": "cls-markov (compiled)", "tau_max": case.tau_max, "mu": DEFAULT_MU, "window": window,
+               "p50": 1e3 * _percentile(times[bounds, "compiled"], 50),
+               "p99": 1e3 * _percentile(times[bounds, "compiled"], 99), "n": repeats,
+               "reference": 1e3 * _median(times[bounds, "reference"]), "poles_equal": same}
+        row["ratio"] = row["reference"] / row["p50"]
+        fast = f">= {COMPILED_GOAL:g} x: {'yes' if row['ratio'] >= COMPILED_GOAL else 'NO'}, "
+        row["goal"] = f"{fast if bounds == 'with bounds' else ''}poles equal to 1e-7: {'yes' if same else 'NO'}"
+        rows.append(row)
+    return rows
+
+
 def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Section:
     section = Section("solve", "4. Solve latency on an engine snapshot (order 3, delay 1, G1 / tanh data)", [
         ("case", "method"), ("window", "W"), ("p50", "p50 ms"), ("p99", "p99 ms"), ("n", "solves"),
         ("first", "first solve ms (warm-up, not in p50/p99)"),
-        ("reference", "batch identify p50 ms"), ("ratio", "batch / solve p50"), ("goal", "goal")])
+        ("reference", "reference p50 ms (batch identify; numpy for compiled)"), ("ratio", "reference / solve p50"),
+        ("goal", "goal")])
     for window in windows:
         for case in solve_cases():
             slow = not case.method.startswith("cls")
@@ -962,6 +1009,7 @@ def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Se
             section.rows.append(row)
             if case.method == "cls-markov" and case.mu == DEFAULT_MU and case.tau_max == default_tau_max(3, case.mu):
                 section.rows += _loaded_rows(case, window, repeats)
+        section.rows += compiled_solve_rows(window, 4 * repeats)
         row = {"case": "diagnose (70/30 split)", "method": "diagnose", "window": window,
                **diagnose_latencies(window, max(3, slow_repeats // 3))}
         section.rows.append(row)
@@ -979,7 +1027,10 @@ def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Se
                          "JSON); \"in the solver process\": the same solves in a `SolverProcess` (the node's default), "
                          "timed where they run (the solve time the node reports; counted in the goal) and end to end "
                          "in this process (snapshot out, outcome back: the wait for this interpreter's lock after "
-                         "the answer arrives is part of it; not counted in the goal)")
+                         "the answer arrives is part of it; not counted in the goal); \"compiled\": the CLS "
+                         "solve (`cls_from_correlations`, with or without its bounds) by the numba kernel "
+                         "`cls_kernel.cls_solve` (what the engine runs) beside the numpy reference (its "
+                         "reference column: `compiled=False`), the four in turn on one snapshot")
     return section
 
 
@@ -1345,6 +1396,12 @@ def goals(sections: dict[str, Section]) -> Section:
             "; ".join(f"W {r['window']}, tau_max {r['tau_max']}{', loaded' if '(process)' in r['method'] else ''}: "
                       f"{r['p99']:.2f} ms" for r in rows),
             _all_some_none([r["p99"] < 5.0 for r in rows]))
+    rows = [r for r in _measured(sections, "solve") if r.get("method") == "cls-markov (compiled)"
+            and "with bounds" in r["case"] and "ratio" in r]
+    if rows:
+        add(f"compiled CLS mu-Markov solve with its bounds >= {COMPILED_GOAL:g} x the numpy reference, same poles",
+            "; ".join(f"W {r['window']}: {r['ratio']:.1f} x ({r['p50']:.2f} vs {r['reference']:.2f} ms)" for r in rows),
+            _all_some_none([r["ratio"] >= COMPILED_GOAL and r["poles_equal"] for r in rows]))
     peers = _measured(sections, "peers")
     rows = [r for r in peers if r.get("method") == "cls-markov" and "speedup" in r and r["case"].startswith("G1")]
     if rows:

@@ -14,6 +14,7 @@ imaginary parts (the imaginary part of a real pole, reported with sd 0, is left 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 import timeit
@@ -87,9 +88,10 @@ def monte_carlo(system: System, method: str, runs: int, seed: int = 0) -> dict:
 
 def solve_cost(window: int = 4000, repeats: int = 200) -> dict:
     """p50 / p99 ms of the node's CLS mu-Markov solve (``solve_snapshot``, W = ``window``, tau_max 66) with
-    the bounds and without them (``cls_uncertainty`` replaced by None; wall time and the thread's CPU
-    time, which a loaded machine inflates less), the bounds alone, and the bench's goal row (in a
-    ``SolverProcess`` beside ingestion at half its limit) with the bounds."""
+    the bounds and without them (the compiled solve without its bounds and ``cls_uncertainty`` replaced
+    by None; wall time and the thread's CPU time, which a loaded machine inflates less), the reference's
+    bounds alone, and the bench's goal row (in a ``SolverProcess`` beside ingestion at half its limit)
+    with the bounds."""
     from ..identification import correlation_least_squares as cls
     from ..streaming.engine import solve_snapshot
     from .bench import SolveCase, feed_engine, hammerstein_record, loaded_solve_latencies
@@ -97,19 +99,20 @@ def solve_cost(window: int = 4000, repeats: int = 200) -> dict:
     case = SolveCase("cls-markov", 66, 30)
     v, y = hammerstein_record(window, seed=4)
     snap = feed_engine(case.config(window), v, y, chunk=1000).snapshot()
-    with_bounds = cls.cls_uncertainty
+    with_bounds, compiled = cls.cls_uncertainty, cls.compiled_steps
     times: dict[str, list[float]] = {"with": [], "without": []}
     cpu: dict[str, list[float]] = {"with": [], "without": []}
     solve_snapshot(snap)
     try:
         for _ in range(repeats):  # alternately, so that both see the same load of the machine
-            for label, function in (("with", with_bounds), ("without", lambda *args: None)):
-                cls.cls_uncertainty = function
+            for label, bounds in (("with", True), ("without", False)):
+                cls.cls_uncertainty = with_bounds if bounds else lambda *args: None
+                cls.compiled_steps = functools.partial(compiled, bounds=bounds)
                 started = time.thread_time()
                 times[label].append(solve_snapshot(snap).solve_seconds * 1e3)
                 cpu[label].append((time.thread_time() - started) * 1e3)
     finally:
-        cls.cls_uncertainty = with_bounds
+        cls.cls_uncertainty, cls.compiled_steps = with_bounds, compiled
     out = {label: {"p50_ms": float(np.percentile(t, 50)), "p99_ms": float(np.percentile(t, 99)),
                    "cpu_p50_ms": float(np.percentile(cpu[label], 50)),
                    "cpu_p99_ms": float(np.percentile(cpu[label], 99))} for label, t in times.items()}
