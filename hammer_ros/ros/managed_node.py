@@ -1,6 +1,6 @@
 """``hammer_ros_node --managed``: the identification node as an rclpy lifecycle (managed) node.
 
-The same ``IdentificationCore`` as the unmanaged node, driven by the lifecycle transitions
+The same ``node_core.NodeHost`` as the unmanaged node, driven by the lifecycle transitions
 (``lifecycle_msgs/srv/ChangeState`` on ``~/change_state``):
 
 - configure: the parameters checked (a bad one fails the transition, with the reason logged),
@@ -21,59 +21,46 @@ prepare_ros_environment()
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
-from .channels import ChannelSupport  # noqa: E402
-from .node_core import NODE_NAME, IdentificationCore  # noqa: E402
+from .node_core import NODE_NAME, NodeHost  # noqa: E402
 
 
-class ManagedIdentificationNode(ChannelSupport, IdentificationCore, LifecycleNode):
+class ManagedIdentificationNode(LifecycleNode):
     """The identification node with the lifecycle states unconfigured / inactive / active / finalized."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        self._setup()
+        self.host = NodeHost(self, self.create_lifecycle_publisher, self.destroy_lifecycle_publisher, managed=True)
         self.get_logger().info("managed node: waiting for the configure transition")
-
-    def _create_output_publisher(self, cls, topic: str, qos):
-        return self.create_lifecycle_publisher(cls, topic, qos)
-
-    def _destroy_output_publisher(self, publisher) -> None:
-        self.destroy_lifecycle_publisher(publisher)
 
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
-            self.configure()
+            self.host.configure()
         except UsageError as exc:
             self.get_logger().error(f"configure failed: {exc}")
-            self.cleanup()
+            self.host.cleanup()
             return TransitionCallbackReturn.FAILURE
         return super().on_configure(state)
 
     def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.activate()
+        self.host.activate()
         return super().on_activate(state)
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.deactivate()  # (its /diagnostics goes out before the publishers are deactivated)
+        self.host.deactivate()  # (its /diagnostics goes out before the publishers are deactivated)
         return super().on_deactivate(state)
 
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self.finish()
-        self.cleanup()
+        self.host.finish()
         return super().on_cleanup(state)
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        if self.active:
-            self.deactivate(publish=False)
-        if self.engine is not None:
-            self.finish()
-            self.cleanup()
-        self.finalized = True
+        self.host.finish()
+        self.host.finalized = True
         return super().on_shutdown(state)
 
     def on_error(self, state: LifecycleState) -> TransitionCallbackReturn:
         self.get_logger().error("lifecycle transition failed; back to unconfigured")
-        if self.active:
-            self.deactivate(publish=False)
-        if self.engine is not None:
-            self.cleanup()
+        if self.host.active:
+            self.host.deactivate(publish=False)
+        self.host.cleanup()
         return TransitionCallbackReturn.SUCCESS

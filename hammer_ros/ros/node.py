@@ -2,7 +2,7 @@
 
 Unmanaged by default (configured and active from the start); with ``--managed`` an rclpy
 lifecycle node (``managed_node``) that waits for configure/activate. The implementation shared
-by both is ``node_core.IdentificationCore``.
+by both is a ``node_core.NodeHost`` (its module docstring: threads, locks, who owns what).
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ from rclpy.task import Future  # noqa: E402
 from rclpy.utilities import remove_ros_args  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
-from .channels import ChannelSupport  # noqa: E402
 from .managed_node import ManagedIdentificationNode  # noqa: E402
-from .node_core import NODE_NAME, PARAMETERS, IdentificationCore  # noqa: E402
+from .node_core import NODE_NAME, PARAMETERS, NodeHost  # noqa: E402
 
 # The executor runs its own event loop (spin_until_future_complete on a future that never
 # completes) and returns every CHECK_SECONDS for the checks of rclpy.ok() and a managed node's
@@ -33,20 +32,19 @@ from .node_core import NODE_NAME, PARAMETERS, IdentificationCore  # noqa: E402
 CHECK_SECONDS = 0.5
 
 
-class IdentificationNode(ChannelSupport, IdentificationCore, Node):
+class IdentificationNode(Node):
     """The unmanaged node (the default): configured and active from construction."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        self._setup()
+        self.host = NodeHost(self, self.create_publisher, self.destroy_publisher)
         try:
-            self.configure()
+            self.host.configure()
         except BaseException:
-            self.close()
+            self.host.close()
             self.destroy_node()
             raise
-        self.activate()
-
+        self.host.activate()
 
 
 def usage() -> str:
@@ -87,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         executor = EventsExecutor()
         never = Future()
         executor.add_node(node)
-        while rclpy.ok() and not node.finalized:
+        while rclpy.ok() and not node.host.finalized:
             try:
                 executor.spin_until_future_complete(never, timeout_sec=CHECK_SECONDS)
             except (KeyboardInterrupt, ExternalShutdownException):
@@ -95,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             except Exception as exc:  # a failing callback must not end the node
                 if not rclpy.ok():
                     break
-                node.loop_errors += 1
+                node.host.errors.add()
                 node.get_logger().error(f"callback failed ({type(exc).__name__}: {exc}); continuing",
                                         throttle_duration_sec=5.0)
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -105,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     finally:
         if node is not None:
-            node.close()
+            node.host.close()
             node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -20,23 +20,23 @@ import rclpy  # noqa: E402  (the environment must be prepared first)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-SERVICES = ("reset", "solve", "diagnose")  # -> the node's reset_window, solve_now, diagnose_now
+SERVICES = ("reset", "solve", "diagnose")  # -> NodeHost's reset_window, solve_now, diagnose_now
 
 
-def trigger_handlers(node) -> dict[str, Callable[[], tuple[bool, str]]]:
-    """name -> the Trigger handler of ``node`` (an ``IdentificationCore``) returning (success,
-    message), guarded: a bug answers the call (counted in ``loop_errors``), never ends the node.
+def trigger_handlers(methods: dict[str, Callable[[], tuple[bool, str]]], errors, logger
+                     ) -> dict[str, Callable[[], tuple[bool, str]]]:
+    """name -> the Trigger handler of ``methods[name]`` returning (success, message), guarded: a
+    bug answers the call (counted in ``errors``, the node's ``loop_errors``), never ends the node.
     The ROS services and the Foxglove server's services call these."""
-    methods = {"reset": node.reset_window, "solve": node.solve_now, "diagnose": node.diagnose_now}
 
     def guarded(name: str, handler: Callable[[], tuple[bool, str]]) -> Callable[[], tuple[bool, str]]:
         def call() -> tuple[bool, str]:
             try:
                 return handler()
             except Exception as exc:  # a bug answers the call, never ends the node
-                node.loop_errors += 1
+                errors.add()
                 message = f"~/{name} failed: {type(exc).__name__}: {exc}"
-                node.get_logger().error(message, throttle_duration_sec=5.0)
+                logger.error(message, throttle_duration_sec=5.0)
                 return False, message
 
         return call
@@ -45,13 +45,13 @@ def trigger_handlers(node) -> dict[str, Callable[[], tuple[bool, str]]]:
 
 
 class NodeServices:
-    """Serves the Trigger services of ``node`` (an ``IdentificationCore``) from a thread."""
+    """Serves the Trigger services ``methods`` (name -> handler) of the rclpy ``node`` from a thread."""
 
-    def __init__(self, node) -> None:
+    def __init__(self, node, methods: dict[str, Callable[[], tuple[bool, str]]], errors) -> None:
         self.node = rclpy.create_node(f"{node.get_name()}_services", namespace=node.get_namespace(),
                                       context=node.context, use_global_arguments=False,
                                       start_parameter_services=False)
-        self.handlers = trigger_handlers(node)
+        self.handlers = trigger_handlers(methods, errors, node.get_logger())
         base = node.get_fully_qualified_name()
         for name in SERVICES:
             self.node.create_service(Trigger, f"{base}/{name}", self._callback(self.handlers[name]))
