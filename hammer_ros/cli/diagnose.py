@@ -30,6 +30,9 @@ def load_split(args: argparse.Namespace) -> Split:
         validation = load_data(args.validation, args)
         split = Split(record.v, record.y, validation.v, validation.y, continuous=False, runs_est=record.runs,
                       runs_val=validation.runs)
+        if split.has_runs:
+            split = replace(split, note=f"estimation on {split.est_runs.describe()}, validation (--validation) on "
+                                        f"{split.val_runs.describe()}")
         check_split(split)
         if record.r is None:
             return split
