@@ -34,10 +34,10 @@ class Split:
     ``runs_est``, ``runs_val``: the separate experiments (``identification.runs.Runs``) each
     part holds (None: one). Every simulation of the diagnosis goes through
     ``estimation_output`` / ``validation_output`` or ``Runs.simulate``, so no simulation
-    crosses a run's boundary: a model's estimation output starts every run at rest at its
-    first input (the simulators' convention), its validation output every run at rest at the
-    equilibrium that explains the run's first measured outputs. A split with runs is never
-    ``continuous``."""
+    crosses a run's boundary: a model's estimation and validation outputs start every run at
+    rest at the equilibrium that explains the run's first measured outputs (the fits themselves
+    start every run at rest at its first input, the simulators' convention; ``per_run``). A
+    split with runs is never ``continuous``."""
 
     v_est: np.ndarray
     y_est: np.ndarray
