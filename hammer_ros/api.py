@@ -59,14 +59,14 @@ def read(path: str | Path | Sequence[str | Path], *, input: str | None = None, o
 def _record(u: Any, y: Any, runs: Runs | Sequence[int] | None, reference: Any) -> Record:
     """``u`` as it is when it is a Record (then ``y`` is None), else a Record of the arrays (u, y);
     ``runs``: a Runs or the run lengths; ``reference``: r of a closed loop."""
+    if isinstance(u, Record) == (y is not None):
+        raise UsageError("give a Record, or the arrays u and y")
     if isinstance(u, Record):
-        if y is not None:
-            raise UsageError("identify: give a Record or the arrays u and y, not both")
         record = u
     else:
         v, out = np.asarray(u, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
         if v.size != out.size:
-            raise UsageError(f"identify: u and y differ in length ({v.size} and {out.size})")
+            raise UsageError(f"u and y differ in length ({v.size} and {out.size})")
         record = Record(v, out)
     if runs is not None:
         runs = runs if isinstance(runs, Runs) else Runs.from_lengths(runs)

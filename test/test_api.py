@@ -133,6 +133,10 @@ def test_plot_draws_the_regions_and_the_band(plant_record, tmp_path):
 def test_unknown_option_is_a_usage_error():
     with pytest.raises(UsageError, match="window"):
         hammer_ros.identify(np.zeros(10), np.zeros(10), window=4)
+    with pytest.raises(UsageError, match="u and y"):
+        hammer_ros.identify(np.zeros(10))
+    with pytest.raises(UsageError, match="differ in length"):
+        hammer_ros.diagnose(np.zeros(10), np.zeros(9))
 
 
 def test_the_python_page_runs(monkeypatch, tmp_path):

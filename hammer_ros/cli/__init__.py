@@ -2,8 +2,10 @@
 
 Every user mistake ends in exit code 2 and one line on stderr naming the file, field or
 option; results go to stdout (one JSON document with --json), logs/progress to stderr.
-The subcommands ``diagnose`` and ``replay`` are modules of this package; ``demo``, ``bench``
-and ``reproduce`` are the tools of ``hammer_ros.tools``, imported only when they run.
+``identify`` is a layer over the Python API (``hammer_ros.api``); so is the record loading of ``identify``
+and ``diagnose`` (``common.load_data`` = ``hammer_ros.read``). The subcommands ``diagnose`` and ``replay``
+are modules of this package; ``demo``, ``bench`` and ``reproduce`` are the tools of ``hammer_ros.tools``,
+imported only when they run.
 """
 
 from __future__ import annotations
