@@ -8,7 +8,9 @@ Layers, each a subpackage whose docstring says what it may import:
 - ``io``: MCAP/rosbag2 bags, CSV/NPZ records;
 - ``ros``: everything that imports rclpy or ROS message packages (the node, its messages);
 - ``cli``: the ``hammer-ros`` command line;
-- ``tools``: bench, reproduce, demo.
+- ``tools``: bench, reproduce, demo;
+- ``api``: the Python API, re-exported here (``hammer_ros.identify``, ``diagnose``, ``read``, ``Model``,
+  ``Diagnosis``, ``Record``), imported on first use so that ``import hammer_ros`` stays light.
 
 Nothing outside ``ros`` (and the tools that start nodes) imports rclpy: ``pip install .`` without
 the ``ros`` extra gives the core, ``identify``, ``diagnose``, ``reproduce`` and ``replay``.
@@ -23,3 +25,14 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 __version__ = "0.1.0"
+
+__all__ = ["Diagnosis", "Model", "Record", "diagnose", "identify", "read"]
+
+
+def __getattr__(name: str):
+    """The API's names (``hammer_ros.api``), imported when first asked for."""
+    if name in __all__:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'hammer_ros' has no attribute {name!r}")

@@ -47,9 +47,11 @@ def imports_of(name: str, path: Path, modules: dict[str, Path]) -> set[str]:
         for candidate in candidates:
             if candidate in modules:
                 found.add(candidate)
-            # importing a.b.c imports the packages a and a.b first
+            # importing a.b.c imports the packages a and a.b first (but not ``name``'s own packages: they
+            # are initialised before ``name``, so ``a.b.c`` importing ``a.b.d`` is no cycle with ``a.b``)
             parts = candidate.split(".")
-            found.update(".".join(parts[:k]) for k in range(1, len(parts)) if ".".join(parts[:k]) in modules)
+            found.update(package for package in (".".join(parts[:k]) for k in range(1, len(parts)))
+                         if package in modules and not name.startswith(package + "."))
     found.discard(name)
     return found
 

@@ -36,6 +36,11 @@ class Record:
         return self.v.size
 
     @property
+    def u(self) -> np.ndarray:
+        """The input (the excitation v; the Python API's name)."""
+        return self.v
+
+    @property
     def run_count(self) -> int:
         return 1 if self.runs is None else self.runs.count
 

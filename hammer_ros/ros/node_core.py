@@ -68,6 +68,7 @@ from ..errors import UsageError  # noqa: E402
 from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
 from ..io.bags import ResultWriter  # noqa: E402
+from ..io.outcome_messages import outcome_messages  # noqa: E402
 from ..streaming.config import HOLD_PERIODS, MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
 from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
@@ -79,8 +80,6 @@ from .outputs import (  # noqa: E402
     diagnosis_message,
     diagnostics_message,
     model_json,
-    result_messages,
-    stale_model_message,
     to_ros_message,
 )
 from .outputs import _message_class as output_message_class  # noqa: E402
@@ -969,14 +968,10 @@ class IdentificationCore:
         """Publish (and record in output_mcap, first) the results of a solve; after a solve without
         a model, the last good model again, marked stale."""
         stamp = self._now()
-        messages = result_messages(outcome, stamp, self.values["frame_id"])
+        messages = outcome_messages(outcome, self.last_outcome, stats, stamp, frame_id=self.values["frame_id"],
+                                    status_name=self._status_name(), complete_status=self._add_node_diagnostics)
         if outcome.ok:
             self.last_outcome = outcome
-        elif self.last_outcome is not None:
-            messages.append(stale_model_message(self.last_outcome, outcome))
-        diagnostics = diagnostics_message(stats, outcome, stamp, self._status_name())
-        self._add_node_diagnostics(diagnostics["status"][0])
-        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         self._send(messages, stamp, publish)
 
     def _send(self, messages: list[tuple[str, str, dict]], stamp_ns: int, publish: bool) -> None:

@@ -20,8 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,6 +30,7 @@ import numpy as np
 from ..errors import UsageError
 from ..identification.linear import root_rss_error
 from ..ros.environment import DomainLease, child_environment
+from .processes import start_ros_process, stop_process
 
 RATE = 500.0
 PLANT_PARAMETERS = {"rate": RATE, "nonlinearity": "dead_zone", "threshold": 0.2, "amplitude": 0.5, "noise": 0.002}
@@ -43,14 +42,6 @@ NODE_PARAMETERS = {"sample_rate": RATE, "method": "cls-markov", "order": 3, "del
 ROW_PERIOD = 2.0  # s between table rows
 CONVERGED_POLE_RSS = 0.02
 STOP_TIMEOUT = 5.0
-
-
-def ros_arguments(parameters: dict) -> list[str]:
-    """``--ros-args -p name:=value ...`` (floats keep their decimal point, so ROS types them double)."""
-    args = ["--ros-args"]
-    for name, value in parameters.items():
-        args += ["-p", f"{name}:={value!r}" if isinstance(value, float) else f"{name}:={value}"]
-    return args
 
 
 def _roots(pairs) -> np.ndarray:
@@ -148,26 +139,6 @@ class _Watcher:
         self.rclpy.try_shutdown()
 
 
-def _start(module: str, parameters: dict, env: dict, log: Path) -> subprocess.Popen:
-    with open(log, "w") as out:
-        return subprocess.Popen([sys.executable, "-m", module, *ros_arguments(parameters)], env=env,
-                                stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-
-
-def _stop(process: subprocess.Popen) -> int:
-    """SIGINT, then SIGTERM, then (last resort) SIGKILL; returns the exit code."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if process.poll() is None:
-            process.send_signal(sig)
-            try:
-                return process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                continue
-    if process.poll() is None:
-        process.kill()
-    return process.wait()
-
-
 def _tail(log: Path, lines: int = 15) -> str:
     text = log.read_text(errors="replace").splitlines() if log.exists() else []
     return "\n".join("    " + line for line in text[-lines:])
@@ -229,8 +200,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"hammer_ros demo: simulated plant (dead zone + resonant 3rd-order block, {RATE:g} Hz) and the "
               f"identification node on ROS_DOMAIN_ID {lease.domain_id} (loopback), {duration:g} s", flush=True)
         processes = {
-            "plant": _start("hammer_ros.ros.plant_node", PLANT_PARAMETERS, env, logs / "plant.log"),
-            "node": _start("hammer_ros.ros.node", NODE_PARAMETERS, env, logs / "node.log"),
+            "plant": start_ros_process("hammer_ros.ros.plant_node", PLANT_PARAMETERS, env, logs / "plant.log"),
+            "node": start_ros_process("hammer_ros.ros.node", NODE_PARAMETERS, env, logs / "node.log"),
         }
         watcher = None
         failed = False
@@ -252,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             print("\ninterrupted", flush=True)
         finally:
-            codes = {name: _stop(p) for name, p in processes.items()}
+            codes = {name: stop_process(p, timeout=STOP_TIMEOUT) for name, p in processes.items()}
             if watcher is not None:
                 summary, _ = _summary(watcher)
                 print(summary, flush=True)
