@@ -207,19 +207,26 @@ class Model:
 def split_records(record: Record, *, split: float | str = 0.7, validation: Record | None = None):
     """(Split, the records' warnings) of a diagnosis: ``record`` for estimation and ``validation`` for
     validation, or ``record`` split at the fraction ``split`` (or ``"auto"``: ``coverage.auto_split``).
-    The split-building of ``hammer-ros diagnose`` (``cli.diagnose.load_split``), on loaded records."""
+    A record of several runs is split into whole runs (``split.split_runs``; ``"auto"`` as 0.7)."""
     from .diagnosis.coverage import auto_split
-    from .diagnosis.split import Split, check_split, split_record
+    from .diagnosis.split import Split, check_split, split_record, split_runs
     from .identification.instrumental import check_reference
 
     if validation is not None:
-        parts = Split(record.v, record.y, validation.v, validation.y, continuous=False)
+        parts = Split(record.v, record.y, validation.v, validation.y, continuous=False, runs_est=record.runs,
+                      runs_val=validation.runs)
+        if parts.has_runs:
+            parts = replace(parts, note=f"estimation on {parts.est_runs.describe()}, validation (--validation) on "
+                                        f"{parts.val_runs.describe()}")
         check_split(parts)
         warnings = (*record.warnings, *validation.warnings)
         if record.r is None:
             return parts, warnings
         return replace(parts, r_est=check_reference(record.r, record.v.size),
                        r_val=check_reference(validation.r, validation.v.size)), warnings
+    if record.runs is not None and record.runs.count > 1:
+        return split_runs(record.v, record.y, record.runs, 0.7 if split == "auto" else float(split),
+                          record.r), record.warnings
     if split == "auto":
         return auto_split(record.v, record.y, record.r), record.warnings
     return split_record(record.v, record.y, float(split), record.r), record.warnings
@@ -269,7 +276,7 @@ class Diagnosis:
     def warnings(self) -> tuple[ModelWarning, ...]:
         """The records' warnings and the diagnosis' reasons not to trust its models: the baseline's
         validation fit, the estimation part's excitation, and the ``closed_loop`` evidence row when it
-        fails without a reference (as ``cli.diagnose.diagnosis_warnings``)."""
+        fails without a reference."""
         from .diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST
         from .identification.trust import closed_loop_warning, excitation_warnings, fit_warnings
 
@@ -284,7 +291,8 @@ class Diagnosis:
         """The ``hammer-ros diagnose --json`` document."""
         from .identification.trust import warnings_json
 
-        return {**self.run.diagnosis.to_json(), "warnings": warnings_json(self.warnings())}
+        return {**self.run.diagnosis.to_json(), "runs": self.split.run_count,
+                "warnings": warnings_json(self.warnings())}
 
     def report(self, path: str | Path, title: str = "hammer-ros diagnosis") -> None:
         """A self-contained HTML report (the ``diagnose --report`` page; needs matplotlib)."""
