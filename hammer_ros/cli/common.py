@@ -158,7 +158,7 @@ def load_data(paths: str | list[str], args: argparse.Namespace):
         return concatenate_records([load_data(path, args) for path in paths])
     path = paths
     if is_bag(path):
-        from ..io.bags import load_bag_record
+        from ..io.bag_reader import load_bag_record
 
         return load_bag_record(path, input_spec=args.input, output_spec=args.output, config=args.config,
                                reference_spec=getattr(args, "reference", None))

@@ -15,8 +15,8 @@ import sys
 
 from ..cli.common import OneLineErrorParser
 from ..errors import UsageError
-from ..io.bags import config_channels, load_msg_config
-from ..ros.dashboard import SHIPPED_NODE, foxglove_layout
+from ..io.bag_config import config_channels, load_msg_config
+from ..messages.dashboard import SHIPPED_NODE, foxglove_layout
 
 
 def main(argv: list[str] | None = None) -> int:
