@@ -2,8 +2,11 @@
 
 Every user mistake ends in exit code 2 and one line on stderr naming the file, field or
 option; results go to stdout (one JSON document with --json), logs/progress to stderr.
-The subcommands ``diagnose`` and ``replay`` are modules of this package; ``demo``, ``bench``
-and ``reproduce`` are the tools of ``hammer_ros.tools``, imported only when they run.
+The subcommands ``diagnose``, ``replay`` and ``fleet`` are modules of this package; ``reproduce``
+is ``hammer_ros.reproduce``; ``demo`` and ``bench`` are tools of ``hammer_ros.tools``, the layer
+above, run by module name when the subcommand runs (never imported here: ``bench`` imports this
+package to run ``replay`` as the command line does).
+May import every layer except ``tools``.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ from .common import (
     split_choice,
     with_reference,
 )
+
+__all__ = ["build_parser", "main"]
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
 # `all`: the papers' numerical examples; `real` (the measured records, minutes of diagnosis) runs on its own
@@ -60,22 +65,30 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 
 def _closed_loop(result, record) -> tuple:
-    """The ``closed_loop`` warning of a model identified without a reference (``trust.closed_loop_warnings``
-    on its free-run residual)."""
+    """The ``closed_loop`` warning of a model identified without a reference, when the diagnosis'
+    feedback test fails on its free-run residual. Not for a trajectory (``trust.is_trajectory``):
+    the test prewhitens the input as a random process, and a planned motion's future follows from
+    its past, so a model error alone would fail it."""
+    from ..diagnosis.closed_loop import closed_loop_evidence
     from ..identification.runs import Runs
-    from ..identification.trust import closed_loop_warnings
+    from ..identification.trust import closed_loop_warning, is_trajectory
 
     if record.r is not None:
         return ()
     runs = record.runs or Runs.one(len(record))
     with np.errstate(all="ignore"):
         residual = record.y - runs.simulate(result.simulate, record.v)
-    return closed_loop_warnings(record.v, residual)
+    v = record.v
+    if np.asarray(v).size < 200 or not np.all(np.isfinite(residual)) or is_trajectory(v):
+        return ()
+    with np.errstate(all="ignore"):
+        evidence = closed_loop_evidence(v, residual)
+    return () if evidence.passed else (closed_loop_warning(evidence.value, evidence.bound),)
 
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from ..tools.reproduce import format_markdown, reproduce_rows
+    from ..reproduce import format_markdown, reproduce_rows
 
     targets = REPRODUCE_ALL if args.target == "all" else (args.target,)
     rows = reproduce_rows(targets, runs=args.runs, seed=args.seed)

@@ -60,11 +60,11 @@ from ..identification.correlation_least_squares import DEFAULT_MU, default_tau_m
 from ..identification.excitation import gaussian_white_noise
 from ..identification.methods import IdentifyOptions, identify
 from ..identification.simulate import HammersteinStream, simulate_hammerstein
+from ..process_status import process_status_kib
+from ..reproduce.cls import G1, INPUT_STD, NONLINEARITIES
 from ..streaming.config import EngineConfig
 from ..streaming.engine import StreamingEngine, solve_snapshot
 from ..streaming.solver_process import SolverProcess
-from .process_status import process_status_kib
-from .reproduce.cls import G1, INPUT_STD, NONLINEARITIES
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 SAMPLE_RATE = 1000.0  # Hz of the generated streams
