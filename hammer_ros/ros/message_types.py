@@ -37,9 +37,11 @@ def input_message_class(type_name: str):
 
 def installed_fields(type_name: str) -> dict[str, str]:
     """Field name -> IDL type of an installed message type 'pkg/Name' (or 'pkg/msg/Name');
-    ImportError or AttributeError when it is not installed (the raw readers then fall back)."""
-    package, name = split_type_name(type_name)
-    return getattr(import_module(f"{package}.msg"), name).get_fields_and_field_types()
+    ImportError when there is none (the raw readers then fall back to rclpy's messages)."""
+    try:
+        return message_class(type_name).get_fields_and_field_types()
+    except UsageError as exc:
+        raise ImportError(str(exc)) from None
 
 
 def raw_extractor(cls, path: FieldPath) -> cdr.Extract | None:
