@@ -25,7 +25,6 @@ from .rosbag2_sqlite import sqlite_index
 
 MAX_RECORD_BYTES = 256 * 2**20  # an MCAP record (chunk) claiming more is treated as damage, never allocated
 MAX_MESSAGE_BYTES = 16 * 2**20  # a message larger than this (2 M float64 samples) is skipped and counted
-MAX_RECORD_SAMPLES = 10_000_000  # identify/diagnose hold the aligned record in memory: at most this many samples
 FIELD_CHECK_MESSAGES = 100  # a field path must work in one of the first messages of its topic
 _warned: set[str] = set()
 

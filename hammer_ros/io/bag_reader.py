@@ -40,7 +40,6 @@ from .bag_config import (
 from .bag_index import (
     FIELD_CHECK_MESSAGES,
     MAX_MESSAGE_BYTES,
-    MAX_RECORD_SAMPLES,
     BagReadStats,
     FileIndex,
     RecordScan,
@@ -57,6 +56,7 @@ from .rosbag2 import decompress_message, readable_file, storage_of
 from .rosbag2_sqlite import SqliteScan
 
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
+MAX_RECORD_SAMPLES = 10_000_000  # identify/diagnose hold the aligned record in memory: at most this many samples
 
 
 def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, str]:

@@ -25,7 +25,6 @@ from .bag_index import (
     FIELD_CHECK_MESSAGES,
     MAX_MESSAGE_BYTES,
     MAX_RECORD_BYTES,
-    MAX_RECORD_SAMPLES,
     BagReadStats,
     FileIndex,
     bag_duration,
@@ -40,6 +39,7 @@ from .bag_index import (
 )
 from .bag_reader import (
     FLUSH_SAMPLES,
+    MAX_RECORD_SAMPLES,
     BagSample,
     check_fields,
     check_topics,
