@@ -141,8 +141,8 @@ class Model:
 
     def warnings(self) -> tuple[ModelWarning, ...]:
         """The record's warnings and the ``closed_loop`` warning of a model identified without a
-        reference (``trust.closed_loop_warnings`` on its free-run residual)."""
-        from .identification.trust import closed_loop_warnings
+        reference (``diagnosis.closed_loop.closed_loop_warnings`` on its free-run residual)."""
+        from .diagnosis.closed_loop import closed_loop_warnings
 
         record = self.record
         if record.r is not None:

@@ -32,6 +32,18 @@ def cli_json(*argv: str) -> dict:
     return json.loads(out.getvalue())
 
 
+def same_document(a, b, rtol: float = 1e-6) -> bool:
+    """The same JSON document: equal keys, strings and integers, numbers to ``rtol`` (the diagnosis'
+    refinements may differ in the last bits between processes that loaded other libraries first)."""
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(same_document(a[k], b[k], rtol) for k in a)
+    if isinstance(a, list):
+        return isinstance(b, list) and len(a) == len(b) and all(same_document(x, z, rtol) for x, z in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float):
+        return a == pytest.approx(b, rel=rtol, abs=1e-12)
+    return a == b
+
+
 def roots(pairs) -> np.ndarray:
     return np.array([complex(re, im) for re, im in pairs])
 
@@ -107,14 +119,14 @@ def test_diagnose_gives_the_cli_cause_and_baseline():
     doc = cli_json("diagnose", str(path), "--order", "2")
     diagnosis = hammer_ros.diagnose(hammer_ros.read(path), order=2)
     assert diagnosis.cause == doc["cause"] and diagnosis.baseline_rms == doc["baseline"]["rms"]
-    assert diagnosis.to_dict() == doc
+    assert same_document(diagnosis.to_dict(), doc)
     assert diagnosis.extended is not None
     test = TANKS / "test.csv"
     doc = cli_json("diagnose", str(path), "--validation", str(test), "--order", "2")
     held_out = hammer_ros.read(test)
     for validation in (held_out, (held_out.u, held_out.y)):
         d = hammer_ros.diagnose(hammer_ros.read(path), order=2, validation=validation)
-        assert d.to_dict() == doc
+        assert same_document(d.to_dict(), doc)
 
 
 def test_plot_draws_the_regions_and_the_band(plant_record, tmp_path):

@@ -24,7 +24,7 @@ from schema_check import layout_paths, layout_topic, mismatches
 
 from hammer_ros.identification.linear import LinearModel, root_rss_error
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic, foxglove_layout
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_topic, foxglove_layout
 
 pytestmark = pytest.mark.ros
 

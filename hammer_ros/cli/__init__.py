@@ -3,9 +3,11 @@
 Every user mistake ends in exit code 2 and one line on stderr naming the file, field or
 option; results go to stdout (one JSON document with --json), logs/progress to stderr.
 ``identify`` is a layer over the Python API (``hammer_ros.api``); so is the record loading of ``identify``
-and ``diagnose`` (``common.load_data`` = ``hammer_ros.read``). The subcommands ``diagnose`` and ``replay``
-are modules of this package; ``demo``, ``bench`` and ``reproduce`` are the tools of ``hammer_ros.tools``,
-imported only when they run.
+and ``diagnose`` (``common.load_data`` = ``hammer_ros.read``). The subcommands ``diagnose``, ``replay`` and
+``fleet`` are modules of this package; ``reproduce`` is ``hammer_ros.reproduce``; ``demo`` and ``bench`` are
+tools of ``hammer_ros.tools``, the layer above, run by module name when the subcommand runs (never imported
+here: ``bench`` imports this package to run ``replay`` as the command line does).
+May import every layer except ``tools``.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ from .common import (
     split_choice,
 )
 
+__all__ = ["build_parser", "main"]
+
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
 # `all`: the papers' numerical examples; `real` (the measured records, minutes of diagnosis) runs on its own
 REPRODUCE_ALL = ("cls", "plls", "bf", "semiparametric")
@@ -53,7 +57,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
 
 
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from ..tools.reproduce import format_markdown, reproduce_rows
+    from ..reproduce import format_markdown, reproduce_rows
 
     targets = REPRODUCE_ALL if args.target == "all" else (args.target,)
     rows = reproduce_rows(targets, runs=args.runs, seed=args.seed)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from ..ros.outputs import diagnostics_message, result_messages, stale_model_message
+from ..messages.outputs import diagnostics_message, result_messages, stale_model_message
 from ..streaming.config import EngineStats
 from ..streaming.engine import SolveOutcome
 

@@ -32,26 +32,17 @@ from typing import Protocol
 import numpy as np
 
 from ..errors import IdentificationError, UsageError
-from ..ros.dashboard import record_results
-from ..ros.outputs import (
+from ..messages.outputs import (
     diagnosis_message,
     seconds_to_ns,
 )
 from ..streaming.config import EngineConfig, EngineStats
 from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome, estimate_snapshot, portable_estimate
 from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window
-from .bags import (
-    FLUSH_SAMPLES,
-    BagReadStats,
-    JsonWriter,
-    ResultWriter,
-    StreamSpec,
-    bag_files,
-    bag_message_counts,
-    check_fields,
-    check_topics,
-    iter_role_samples,
-)
+from .bag_config import StreamSpec
+from .bag_index import BagReadStats, bag_files, bag_message_counts
+from .bag_reader import FLUSH_SAMPLES, check_fields, check_topics, iter_role_samples
+from .bag_writer import JsonWriter, ResultWriter, record_results
 from .outcome_messages import outcome_messages
 
 NODE_NAME = "hammer_ros"

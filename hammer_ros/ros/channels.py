@@ -1,5 +1,5 @@
 """Several channels in one live node: a ``channels`` list in the node's params file (the form of
-``io.bags.config_channels``, as ``replay`` reads it) makes the node identify one (excitation,
+``io.bag_config.config_channels``, as ``replay`` reads it) makes the node identify one (excitation,
 response) pair per channel, each with its own ``StreamingEngine``, solve and diagnosis threads
 and outputs under ``~/NAME/`` (model, poles, zeros, markov, nonlinearity, diagnosis).
 
@@ -36,9 +36,12 @@ prepare_ros_environment()
 from rclpy.lifecycle import LifecycleNode  # noqa: E402
 
 from ..errors import UsageError  # noqa: E402
-from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, ResultWriter, config_channels  # noqa: E402
+from ..io.bag_config import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
+from ..io.bag_writer import ResultWriter  # noqa: E402
+from ..messages.cdr import TopicDecoder  # noqa: E402
 from ..streaming.config import EngineConfig  # noqa: E402
-from .cdr import TopicDecoder, topic_decoder  # noqa: E402
+from .message_types import message_class as output_message_class  # noqa: E402
+from .message_types import topic_decoder  # noqa: E402
 from .node_core import (  # noqa: E402
     PARAMETERS,
     IdentificationCore,
@@ -51,7 +54,6 @@ from .node_core import (  # noqa: E402
     close_output_mcap,
     message_class,
 )
-from .outputs import message_class as output_message_class  # noqa: E402
 
 if TYPE_CHECKING:
     from .foxglove_server import DashboardServer

@@ -27,14 +27,12 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, fields, replace
-from importlib import import_module
 from typing import Any
 
 import numpy as np
@@ -67,34 +65,35 @@ from ..diagnosis.closed_loop import WARNING as CLOSED_LOOP_WARNING  # noqa: E402
 from ..errors import UsageError  # noqa: E402
 from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
-from ..io.bags import ResultWriter  # noqa: E402
+from ..io.bag_writer import ResultWriter, record_results  # noqa: E402
 from ..io.outcome_messages import outcome_messages  # noqa: E402
-from ..streaming.config import HOLD_PERIODS, MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
-from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
-from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
-from .cdr import extract_batch, raw_extractor  # noqa: E402
-from .dashboard import dashboard_messages, record_results  # noqa: E402
-from .field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
-from .outputs import (  # noqa: E402
+from ..messages.cdr import extract_batch  # noqa: E402
+from ..messages.dashboard import dashboard_messages  # noqa: E402
+from ..messages.field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, message_stamp, parse_field_path  # noqa: E402
+from ..messages.outputs import (  # noqa: E402
     OUTPUT_TOPICS,
     diagnosis_message,
     diagnostics_message,
     model_json,
-    to_ros_message,
 )
-from .outputs import _message_class as output_message_class  # noqa: E402
-from .sample_clock import ArrivalStamper  # noqa: E402
+from ..messages.types import INPUT_PACKAGES as MESSAGE_PACKAGES  # noqa: E402
+from ..messages.types import normal_type as _normal_type  # noqa: E402
+from ..streaming.config import HOLD_PERIODS, MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
+from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
+from ..streaming.sample_clock import ArrivalStamper  # noqa: E402
+from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
+from .message_types import input_message_class as message_class  # noqa: E402
+from .message_types import message_class as output_message_class  # noqa: E402
+from .message_types import raw_extractor, to_ros_message  # noqa: E402
 from .services import NodeServices  # noqa: E402
 
 NODE_NAME = "hammer_ros"
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
 ARRIVALS = 6  # arrival times of zero-stamped messages kept per stream to tell a sparse stream (module docstring)
 WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``activate``)
-MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
 REFERENCE = "reference"  # the optional third input: a closed loop's reference (``reference_topic``)
 STREAMING_METHODS = tuple(m for m in METHODS if m != "semiparametric")
-_TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
 
 @dataclass(frozen=True)
@@ -168,24 +167,6 @@ PARAMETERS: dict[str, Spec] = {
 ENGINE_FIELDS = {f.name for f in fields(EngineConfig)} & set(PARAMETERS)
 STREAM_PARAMETERS = {f"{s}_{k}": s for s in STREAMS for k in ("topic", "type", "field")}
 DIAGNOSIS_TYPE = "std_msgs/msg/String"
-
-
-def message_class(type_name: str):
-    """The rclpy message class of 'pkg/msg/Name' (or 'pkg/Name') from an allowed package."""
-    match = _TYPE_NAME.match(type_name or "")
-    if not match:
-        raise UsageError(f"message type {type_name!r}: expected package/msg/Name, e.g. std_msgs/msg/Float64")
-    package, name = match.groups()
-    if package not in MESSAGE_PACKAGES:
-        raise UsageError(f"message type {type_name!r}: package {package!r} not supported "
-                         f"(use one of {', '.join(MESSAGE_PACKAGES)})")
-    try:
-        cls = getattr(import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        raise UsageError(f"message type {type_name!r}: no such message in {package}") from None
-    if not hasattr(cls, "get_fields_and_field_types"):
-        raise UsageError(f"message type {type_name!r}: not a message")
-    return cls
 
 
 def check_field(cls, path: FieldPath) -> None:
@@ -1130,9 +1111,3 @@ class IdentificationCore:
         if "error" in doc:
             return False, doc["error"]
         return True, json.dumps(strict_json(doc), allow_nan=False)
-
-
-def _normal_type(name: str) -> str:
-    """'pkg/msg/Name' and 'pkg/Name' compare equal."""
-    parts = name.split("/")
-    return f"{parts[0]}/{parts[-1]}"

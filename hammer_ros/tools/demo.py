@@ -18,7 +18,6 @@ the window. Stops both processes with SIGINT and waits for them.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -29,6 +28,7 @@ import numpy as np
 
 from ..errors import UsageError
 from ..identification.linear import root_rss_error
+from ..ros.demo_watcher import DemoWatcher
 from ..ros.environment import DomainLease, child_environment
 from .processes import start_ros_process, stop_process
 
@@ -93,50 +93,6 @@ def _number(x, width: int, digits: int) -> str:
     return f"{x:{width}.{digits}f}" if isinstance(x, (int, float)) else f"{'-':>{width}}"
 
 
-class _Watcher:
-    """The demo's own ROS node: latest truth, model and diagnostics."""
-
-    def __init__(self) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.experimental import EventsExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        from std_msgs.msg import String
-
-        self.rclpy = rclpy
-        rclpy.init()
-        self.node = rclpy.create_node("hammer_ros_demo")
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.truth: dict | None = None
-        self.model: dict | None = None
-        self.models = 0
-        self.status = "starting"
-        self.node.create_subscription(String, "/plant/truth", self._on_truth, latched)
-        self.node.create_subscription(String, "/hammer_ros/model", self._on_model, latched)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.executor = EventsExecutor()
-        self.executor.add_node(self.node)
-
-    def _on_truth(self, msg) -> None:
-        self.truth = json.loads(msg.data)
-
-    def _on_model(self, msg) -> None:
-        self.model = json.loads(msg.data)
-        self.models += 1
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            if status.name.startswith("hammer_ros"):
-                self.status = status.message
-
-    def spin_until(self, deadline: float) -> None:
-        while self.rclpy.ok() and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=max(0.0, min(0.1, deadline - time.monotonic())))
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.rclpy.try_shutdown()
 
 
 def _tail(log: Path, lines: int = 15) -> str:
@@ -144,7 +100,7 @@ def _tail(log: Path, lines: int = 15) -> str:
     return "\n".join("    " + line for line in text[-lines:])
 
 
-def _row(elapsed: float, watcher: _Watcher) -> str:
+def _row(elapsed: float, watcher: DemoWatcher) -> str:
     if watcher.model is None or watcher.truth is None:
         return f"{elapsed:7.1f}  {'-':>7}  {'-':>9}  {'-':>9}  {'-':>8}  {'-':>7}   {watcher.status}"
     c = compare(watcher.truth, watcher.model)
@@ -164,7 +120,7 @@ def _map_rows(truth: dict, estimate: dict) -> list[str]:
             for label, row in zip(("u", "F(u) true", "F(u) model"), maps)]
 
 
-def _summary(watcher: _Watcher) -> tuple[str, bool]:
+def _summary(watcher: DemoWatcher) -> tuple[str, bool]:
     truth, model = watcher.truth, watcher.model
     if truth is None or model is None:
         return "no model was identified (see the process logs above)", False
@@ -206,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
         watcher = None
         failed = False
         try:
-            watcher = _Watcher()
+            watcher = DemoWatcher()
             print(f"{'t [s]':>7}  {'samples':>7}  {'pole RSS':>9}  {'zero RSS':>9}  {'F err %':>8}  {'fit %':>7}",
                   flush=True)
             start = time.monotonic()

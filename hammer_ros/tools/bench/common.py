@@ -18,9 +18,9 @@ import scipy.fft
 
 from ...identification.excitation import gaussian_white_noise
 from ...identification.simulate import simulate_hammerstein
+from ...reproduce.cls import G1, INPUT_STD, NONLINEARITIES
 from ...streaming.config import EngineConfig
 from ...streaming.engine import StreamingEngine
-from ..reproduce.cls import G1, INPUT_STD, NONLINEARITIES
 
 DATA_DIR = Path(__file__).resolve().parents[2] / "data"
 SAMPLE_RATE = 1000.0  # Hz of the generated streams

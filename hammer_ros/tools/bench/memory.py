@@ -12,11 +12,11 @@ import numpy as np
 
 from ...identification.correlation_least_squares import DEFAULT_MU, default_tau_max
 from ...identification.simulate import HammersteinStream
+from ...process_status import process_status_kib
+from ...reproduce.cls import G1, INPUT_STD
 from ...ros.environment import without_bootstrap
 from ...streaming.config import EngineConfig
 from ...streaming.engine import StreamingEngine
-from ..process_status import process_status_kib
-from ..reproduce.cls import G1, INPUT_STD
 from .common import (
     F2,
     SAMPLE_RATE,
