@@ -1,13 +1,15 @@
 """Diagnosis of simulated servo configurations against the 7-parameter physical yardstick.
 
-    python test/actuators_held_out.py FIRST_SEED LAST_SEED
+    python test/actuators_held_out.py FIRST_SEED LAST_SEED [--concatenated]
 
 draws, per seed, a position servo (arm mass 0.05-0.5 kg, length 0.08-0.3 m, P gain 2-12 N m/rad,
-a D term in half of them, torque limit 0.6-2 N m, viscous and Coulomb friction), runs the four
-trajectories twice for estimation and twice for validation (``actuators.servo_record``),
-diagnoses it (``--validation``, no order given) and fits the yardstick (``fit_physical_servo``)
-on the same data. Prints one line per configuration and the counts. Not a test: the numbers are
-quoted in docs/diagnosis.md."""
+a D term in half of them, torque limit 0.6-2 N m, viscous and Coulomb friction), runs 8 estimation
+and 8 validation experiments of 600 samples (6 s at 100 Hz), each from rest at its own random start
+and ending anywhere (``actuators.servo_runs_record``), diagnoses them given as runs (no order given)
+and fits the yardstick (``fit_physical_servo``, every run simulated from its own measured start) on
+the same data. ``--concatenated``: the same records without their run boundaries (one record each;
+the yardstick simulated from the record's first sample), for contrast. Prints one line per
+configuration and the counts. Not a test: the numbers are quoted in docs/diagnosis.md."""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ import time
 
 import numpy as np
 
-from hammer_ros.diagnosis.actuators import ServoArm, fit_physical_servo, servo_record
+from hammer_ros.diagnosis.actuators import ServoArm, fit_physical_servo, physical_servo_runs, servo_runs_record
 from hammer_ros.diagnosis.diagnose import diagnose
 from hammer_ros.diagnosis.split import Split
 
@@ -28,16 +30,19 @@ def configuration(seed: int) -> ServoArm:
                     viscous=rng.uniform(0.05, 0.3), coulomb=rng.uniform(0.01, 0.08))
 
 
-def main(first: int, last: int) -> None:
+def main(first: int, last: int, concatenated: bool) -> None:
     named = beaten = 0
     for seed in range(first, last + 1):
         arm = configuration(seed)
-        record = servo_record(arm, seconds=6.0, seed=seed)
+        record = servo_runs_record(arm, seed=seed)
+        runs_est, runs_val = (None, None) if concatenated else (record.runs_est, record.runs_val)
         t0 = time.perf_counter()
-        d = diagnose(Split(record.u_est, record.y_est, record.u_val, record.y_val, continuous=False)).diagnosis
+        d = diagnose(Split(record.u_est, record.y_est, record.u_val, record.y_val, continuous=False,
+                           runs_est=runs_est, runs_val=runs_val)).diagnosis
         seconds = time.perf_counter() - t0
-        _, yardstick = fit_physical_servo(record.u_est, record.y_est)
-        reference = float(np.sqrt(np.mean((yardstick(record.u_val) - record.y_val) ** 2)))
+        theta, _ = fit_physical_servo(record.u_est, record.y_est, runs=runs_est)
+        reference = float(np.sqrt(np.mean((physical_servo_runs(theta, record.u_val, record.y_val, runs_val)
+                                           - record.y_val) ** 2)))
         extended = d.extended.rms if d.extended is not None else d.baseline.rms
         named += d.cause == "output_feedback"
         beaten += extended <= reference
@@ -46,8 +51,9 @@ def main(first: int, last: int) -> None:
               f"{reference:.4f}, baseline {d.baseline.rms:.4f}, {seconds:.1f} s"
               + ("" if d.cause == "output_feedback" and extended <= reference else "  <--"), flush=True)
     total = last - first + 1
-    print(f"output_feedback {named}/{total}, at most the yardstick's RMSE {beaten}/{total}")
+    print(f"{'concatenated' if concatenated else 'runs'}: output_feedback {named}/{total}, "
+          f"at most the yardstick's RMSE {beaten}/{total}")
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]), int(sys.argv[2]))
+    main(int(sys.argv[1]), int(sys.argv[2]), "--concatenated" in sys.argv[3:])

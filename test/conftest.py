@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 from pathlib import Path
@@ -11,7 +10,7 @@ import numpy as np
 import pytest
 
 from hammer_ros.identification.linear import LinearModel
-from hammer_ros.ros.environment import DomainLease
+from hammer_ros.ros.environment import DomainLease, without_bootstrap
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_BIN = Path(sys.executable).parent
@@ -42,7 +41,7 @@ def ros_env(tmp_path, compiled_solve):
 
     The domain id is leased exclusively (``ros_env.DomainLease``: an flock per id), so parallel
     pytest runs, the demo and the tests of other checkouts on this machine never share a graph."""
-    env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
+    env = without_bootstrap()
     with DomainLease() as lease:
         env.update(
             AMENT_PREFIX_PATH=str(VENV_BIN.parent),

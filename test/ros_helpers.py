@@ -8,13 +8,11 @@ import json
 import os
 import signal
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from hammer_ros.tools.demo import ros_arguments
+from hammer_ros.tools.processes import start_ros_process, stop_process
 
 
 def free_port() -> int:
@@ -31,22 +29,14 @@ STOP_TIMEOUT = 10.0
 class RosProcess:
     """A ``python -m MODULE [OPTIONS] --ros-args -p ...`` child with its output in a log file."""
 
-    def __init__(self, module: str, parameters: dict, env: dict, log: Path, options: tuple[str, ...] = ()) -> None:
+    def __init__(self, module: str, parameters: dict, env: dict, log: Path, options: tuple[str, ...] = (),
+                 params_file: Path | None = None) -> None:
         self.log = log
-        with open(log, "w") as out:
-            self.process = subprocess.Popen([sys.executable, "-m", module, *options, *ros_arguments(parameters)],
-                                            env=env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        self.process = start_ros_process(module, parameters, env, log, options=options, params_file=params_file)
 
-    def stop(self, sig: int = signal.SIGINT) -> int:
+    def stop(self, sig: int = signal.SIGINT, timeout: float = STOP_TIMEOUT) -> int:
         """Send ``sig`` and wait; a process that does not exit is killed and reported as -9."""
-        if self.process.poll() is None:
-            self.process.send_signal(sig)
-        try:
-            return self.process.wait(timeout=STOP_TIMEOUT)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-            return -9
+        return stop_process(self.process, (sig,), timeout)
 
     def output(self) -> str:
         return self.log.read_text(errors="replace")

@@ -1,5 +1,5 @@
 """A checker of JSON messages against the dashboard's JSON schemas (the subset of JSON Schema
-that ``hammer_ros.ros.dashboard`` uses: type, properties, additionalProperties, items), and of
+that ``hammer_ros.messages.dashboard`` uses: type, properties, additionalProperties, items), and of
 Foxglove message paths against a schema. Strict: a key that the schema does not declare is a
 mismatch, so a new key in a message fails until its schema declares it. And the message paths
 of a Foxglove layout."""

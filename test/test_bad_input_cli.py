@@ -20,7 +20,7 @@ from conftest import G1, REPO
 from hammer_ros.cli import main
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.io import bags as bag_io
+from hammer_ros.io import bag_reader
 from hammer_ros.io.bags import message_definition
 
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")
@@ -271,7 +271,7 @@ def test_a_hostile_bag_cannot_exhaust_memory(capsys, tmp_path, monkeypatch):
     for k in range(1, 4):
         small.write("/cmd", kind, k * 1000.0, multiarray_cdr(v[:100_000]))
         small.write("/y", kind, k * 1000.0, multiarray_cdr(y[:100_000]))
-    monkeypatch.setattr(bag_io, "MAX_RECORD_SAMPLES", 150_000)  # identify holds the record: bounded
+    monkeypatch.setattr(bag_reader, "MAX_RECORD_SAMPLES", 150_000)  # identify holds the record: bounded
     rate = write_csv(tmp_path, "hammer_ros:\n  ros__parameters:\n    sample_rate: 100.0\n", "rate.yaml")
     assert_usage_error(capsys, ["identify", small.close(), "--input", "/cmd:data[:]", "--output", "/y:data[:]",
                                 "--config", rate], "more than 150,000 aligned samples", "hammer-ros replay")

@@ -11,7 +11,7 @@ import pytest
 from hammer_ros.errors import UsageError
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.identification.simulate import HammersteinStream
-from hammer_ros.ros.outputs import diagnostics_message, result_messages, stale_model_message
+from hammer_ros.messages.outputs import diagnostics_message, result_messages, stale_model_message
 from hammer_ros.streaming import config as streaming_config
 from hammer_ros.streaming import correlation_window
 from hammer_ros.streaming import engine as streaming_engine

@@ -23,7 +23,7 @@ from hammer_ros.io.bags import (
     message_definition,
     stream_specs,
 )
-from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
+from hammer_ros.messages.field_path import FieldError, extract_samples, message_stamp, parse_field_path
 
 REPO = Path(__file__).resolve().parents[1]
 FLOAT64_BAG = REPO / "bags" / "float64_cubic_g1.mcap"
@@ -113,6 +113,7 @@ def test_the_fast_bag_read_equals_mcap_and_the_full_decode(monkeypatch, bag, spe
     from mcap.records import Chunk
     from mcap.stream_reader import StreamReader, breakup_chunk
 
+    from hammer_ros.io import bag_reader
     from hammer_ros.io import bags as bag_io
 
     chunks = 0
@@ -129,11 +130,11 @@ def test_the_fast_bag_read_equals_mcap_and_the_full_decode(monkeypatch, bag, spe
         return [(s.stream, s.stamp, s.log_time, np.atleast_1d(s.values).tolist())
                 for s in bag_io.iter_bag_samples(bag, excitation, response)]
     decoded = []
-    full_decode = bag_io._decode_message
-    monkeypatch.setattr(bag_io, "_decode_message", lambda *args: decoded.append(1) or full_decode(*args))
+    full_decode = bag_reader._decode_message
+    monkeypatch.setattr(bag_reader, "_decode_message", lambda *args: decoded.append(1) or full_decode(*args))
     fast = samples()
     assert not decoded  # every message read from its bytes
-    monkeypatch.setattr(bag_io, "_field_readers", lambda *args: None)
+    monkeypatch.setattr(bag_reader, "_field_readers", lambda *args: None)
     assert fast == samples() and len(fast) > 1000 and len(decoded) > 500
 
 

@@ -19,7 +19,7 @@ from hammer_ros.identification.methods import IdentifyOptions, identify
 from hammer_ros.identification.result import fit_percent
 from hammer_ros.identification.simulate import add_noise, simulate_hammerstein, simulate_parallel
 from hammer_ros.identification.static_maps import PolynomialMap
-from hammer_ros.tools.reproduce import bf
+from hammer_ros.reproduce import bf
 
 FEEDFORWARD = IdentifyOptions(order=2, delay=1, poly=4)
 

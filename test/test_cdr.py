@@ -8,8 +8,9 @@ import re
 import numpy as np
 import pytest
 
-from hammer_ros.ros.cdr import extract_batch, raw_extractor, topic_decoder
-from hammer_ros.ros.field_path import FieldError, extract_samples, message_stamp, parse_field_path
+from hammer_ros.messages.cdr import extract_batch
+from hammer_ros.messages.field_path import FieldError, extract_samples, message_stamp, parse_field_path
+from hammer_ros.ros.message_types import raw_extractor, topic_decoder
 
 
 def messages():
@@ -128,7 +129,7 @@ def test_the_bag_schema_gives_the_layout_of_the_installed_types():
     from rclpy.serialization import serialize_message
 
     from hammer_ros.io.bags import message_definition
-    from hammer_ros.ros.cdr import schema_extractor
+    from hammer_ros.messages.cdr import schema_extractor
 
     def decodes(decode, data: bytes) -> bool:
         try:
@@ -161,7 +162,7 @@ def test_the_bag_schema_gives_the_layout_of_the_installed_types():
 
 
 def test_a_schema_definition_in_msg_form():
-    from hammer_ros.ros.cdr import definition_fields, schema_extractor
+    from hammer_ros.messages.cdr import definition_fields, schema_extractor
 
     text = ("# comment\nuint8 OK=0\nstring NAME = \"a=b\"\nHeader header\nfloat64[] a  # trailing\n"
             "float32[<=3] b\nint16[4] c\nstring<=8 d\ngeometry_msgs/Vector3 e\nPoint f\nbool g true\n")
@@ -225,7 +226,7 @@ def test_a_bag_extractor_reads_every_message_of_a_stream_as_if_it_were_the_first
     from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
     from hammer_ros.io.bags import message_definition
-    from hammer_ros.ros.cdr import schema_extractor
+    from hammer_ros.messages.cdr import schema_extractor
 
     def multi(data, label="", offset=0):
         msg = Float64MultiArray(data=data)

@@ -26,7 +26,7 @@ from hammer_ros.identification.correlation_least_squares import (
 )
 from hammer_ros.identification.linear import root_rss_error
 from hammer_ros.identification.methods import IdentifyOptions, identify
-from hammer_ros.tools.reproduce import cls as tables
+from hammer_ros.reproduce import cls as tables
 
 RUNS = 30
 SEED = 2024

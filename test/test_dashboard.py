@@ -1,4 +1,4 @@
-"""The Foxglove dashboard channels (``hammer_ros.ros.dashboard``): their JSON schemas declare every
+"""The Foxglove dashboard channels (``hammer_ros.messages.dashboard``): their JSON schemas declare every
 key of every message the node and replay send (stale models, diagnoses, failed diagnoses), and
 every path of the shipped Foxglove layout exists in the schemas."""
 
@@ -12,8 +12,8 @@ from schema_check import layout_paths, layout_topic, mismatches, path_in_schema
 
 from hammer_ros.identification.closed_loop import random_loop_pair
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic, foxglove_layout
-from hammer_ros.ros.outputs import diagnosis_message, diagnostics_message, result_messages, stale_model_message
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_messages, dashboard_topic, foxglove_layout
+from hammer_ros.messages.outputs import diagnosis_message, diagnostics_message, result_messages, stale_model_message
 from hammer_ros.streaming.config import EngineConfig
 from hammer_ros.streaming.engine import StreamingEngine
 from hammer_ros.streaming.solver_process import diagnose_window

@@ -58,8 +58,8 @@ def test_dashboard_layout_plots_fields_the_node_publishes():
     """Every path of the Foxglove layout exists in the dashboard channels (``ros.dashboard``) the
     node serves and ``replay --dashboard-out`` records, and every channel is shown."""
     from hammer_ros.identification.simulate import simulate_hammerstein
-    from hammer_ros.ros.dashboard import CHANNELS, dashboard_messages, dashboard_topic
-    from hammer_ros.ros.outputs import diagnostics_message, result_messages
+    from hammer_ros.messages.dashboard import CHANNELS, dashboard_messages, dashboard_topic
+    from hammer_ros.messages.outputs import diagnostics_message, result_messages
     from hammer_ros.ros.plant_node import DEMO_PLANT, static_map
     from hammer_ros.streaming.config import EngineConfig
     from hammer_ros.streaming.engine import StreamingEngine

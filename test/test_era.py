@@ -8,7 +8,7 @@ import pytest
 from hammer_ros.errors import IdentificationError
 from hammer_ros.identification.era import eigensystem_realization, era_linear_model
 from hammer_ros.identification.linear import LinearModel, root_rss_error
-from hammer_ros.tools.reproduce.cls import G2
+from hammer_ros.reproduce.cls import G2
 
 
 def test_exact_markov_parameters_of_g1_give_its_poles_and_zeros(g1):

@@ -26,6 +26,7 @@ from ros_helpers import free_port
 from hammer_ros.fleet.sample_fleet import sample_joints, write_sample_fleet
 from hammer_ros.fleet.table import QUANTITIES, read_rows
 from hammer_ros.identification.linear import root_rss_error
+from hammer_ros.ros.environment import without_bootstrap
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -36,7 +37,7 @@ JOINTS = sample_joints(robots=2, joints=2)[:3]  # robot_01/joint1 healthy, /join
 
 
 def child_env() -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
+    env = without_bootstrap()
     env.update(OPENBLAS_NUM_THREADS="1", PYTHONUNBUFFERED="1")
     return env
 

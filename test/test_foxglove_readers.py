@@ -13,7 +13,7 @@ import pytest
 from foxglove_js import run_checker
 
 from hammer_ros.cli import main
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_topic
 
 REPO = Path(__file__).resolve().parents[1]
 BAGS = [("bags/float64_cubic_g1.mcap", "msg_config/float64_cubic_g1.yaml", []),

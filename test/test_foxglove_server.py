@@ -20,7 +20,7 @@ from foxglove_js import run_checker
 from ros_helpers import Listener, RosProcess, free_port
 from schema_check import mismatches
 
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_topic
 from hammer_ros.ros.environment import DomainLease, child_environment
 from hammer_ros.ros.node_core import PARAMETERS
 

@@ -15,7 +15,7 @@ from hammer_ros.errors import UsageError
 from hammer_ros.identification.linear import LinearModel, root_rss_error
 from hammer_ros.identification.simulate import simulate_hammerstein
 from hammer_ros.io.bags import load_bag_record
-from hammer_ros.ros.field_path import MissingName, extract_samples, parse_field_path
+from hammer_ros.messages.field_path import MissingName, extract_samples, parse_field_path
 
 JOINTS = ("shoulder_pan_joint", "elbow_joint", "wrist_1_joint")
 PLANTS = {name: LinearModel.from_zeros_poles([-0.5], [pole, np.conj(pole)], dc_gain=1.0)
@@ -115,7 +115,7 @@ def test_the_node_reads_a_named_element_from_the_serialized_message():
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from hammer_ros.ros.cdr import raw_extractor
+    from hammer_ros.ros.message_types import raw_extractor
     from hammer_ros.ros.node_core import check_field
 
     path = parse_field_path("velocity[elbow_joint]")
@@ -184,7 +184,7 @@ def test_several_channels_diagnose_and_write_dashboards_per_channel(arm_bags, ca
     from rosbags.highlevel import AnyReader
 
     from hammer_ros.diagnosis.causes import CAUSES
-    from hammer_ros.ros.dashboard import dashboard_topic
+    from hammer_ros.messages.dashboard import dashboard_topic
 
     _, shuffled, _ = arm_bags
     config = tmp_path / "arm.yaml"

@@ -191,19 +191,15 @@ def test_bad_messages_are_counted_and_sigint_exits_cleanly(ros_env, tmp_path):
 
 
 def test_params_file_configures_the_node_and_sigterm_exits_cleanly(ros_env, tmp_path):
-    log = tmp_path / "node.log"
-    with open(log, "w") as out:
-        node = subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file",
-                                 str(REPO / "msg_config" / "float64_example.yaml"), "-p", "window:=3000"],
-                                env=ros_env, stdout=out, stderr=subprocess.STDOUT)
+    node = RosProcess("hammer_ros.ros.node", {"window": 3000}, ros_env, tmp_path / "node.log",
+                      params_file=REPO / "msg_config" / "float64_example.yaml")
     listener = Listener(ros_env)
     try:
         assert _get(listener, "excitation_topic", "sample_rate", "window") == ["/cmd", 100.0, 3000]
     finally:
         listener.close()
-        node.send_signal(signal.SIGTERM)
-        code = node.wait(timeout=10)
-    assert code == 0, log.read_text()
+        code = node.stop(signal.SIGTERM)
+    assert code == 0, node.output()
 
 
 @pytest.mark.parametrize("args, needle", [

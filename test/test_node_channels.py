@@ -19,12 +19,12 @@ import time
 import numpy as np
 import pytest
 from foxglove_client import FoxgloveClient
-from ros_helpers import Listener, free_port
+from ros_helpers import Listener, RosProcess, free_port
 from schema_check import layout_paths, layout_topic, mismatches
 
 from hammer_ros.identification.linear import LinearModel, root_rss_error
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic, foxglove_layout
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_topic, foxglove_layout
 
 pytestmark = pytest.mark.ros
 
@@ -58,12 +58,6 @@ hammer_ros:
 """
 
 
-def _node(env, params_file, log):
-    with open(log, "w") as out:
-        return subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file",
-                                 str(params_file)], env=env, stdout=out, stderr=subprocess.STDOUT)
-
-
 def _pole_error(name: str, model: dict) -> float:
     return root_rss_error(PLANTS[name].poles, np.array([complex(re, im) for re, im in model["poles"]]))
 
@@ -81,7 +75,7 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
                 + 0.002 * rng.standard_normal(n) for name in JOINTS}
     params, recorded, port = tmp_path / "arm.yaml", tmp_path / "results.mcap", free_port()
     params.write_text(PARAMS + f"    foxglove_port: {port}\n    output_mcap: {recorded}\n")
-    node = _node(ros_env, params, tmp_path / "node.log")
+    node = RosProcess("hammer_ros.ros.node", {}, ros_env, tmp_path / "node.log", params_file=params)
     listener = Listener(ros_env)
     fox = None
     try:
@@ -150,13 +144,12 @@ def test_three_channels_converge_each_to_its_own_joint(ros_env, tmp_path):
 
         listener.wait_for(lambda: field_errors() == {"shoulder": 0, "elbow": MISSING, "wrist": 0},
                           what=f"{MISSING} field errors of the elbow channel alone")
-        assert node.poll() is None
+        assert node.process.poll() is None
     finally:
         if fox is not None:
             fox.close()
         listener.close()
-        node.send_signal(signal.SIGINT)
-        code = node.wait(timeout=20)
+        code = node.stop(signal.SIGINT, timeout=20)
     log = (tmp_path / "node.log").read_text()
     assert code == 0, log[-3000:]
     from rosbags.highlevel import AnyReader
@@ -198,7 +191,7 @@ def test_one_channel_is_the_single_channel_node_of_its_parameters(ros_env, tmp_p
     params = tmp_path / "one.yaml"
     params.write_text(PARAMS.replace("channels: [shoulder, elbow, wrist]", "channels: [wrist]")
                       .replace("    shoulder: {", "    # shoulder: {").replace("    elbow: {", "    # elbow: {"))
-    node = _node(ros_env, params, tmp_path / "node.log")
+    node = RosProcess("hammer_ros.ros.node", {}, ros_env, tmp_path / "node.log", params_file=params)
     listener = Listener(ros_env)
     try:
         client = AsyncParameterClient(listener.node, "hammer_ros")
@@ -213,6 +206,5 @@ def test_one_channel_is_the_single_channel_node_of_its_parameters(ros_env, tmp_p
         assert not any(t.startswith("/hammer_ros/wrist") for t in topics)
     finally:
         listener.close()
-        node.send_signal(signal.SIGINT)
-        code = node.wait(timeout=20)
+        code = node.stop(signal.SIGINT, timeout=20)
     assert code == 0, (tmp_path / "node.log").read_text()[-3000:]

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -10,6 +9,8 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+
+from hammer_ros.ros.environment import without_bootstrap
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -28,7 +29,7 @@ def test_colcon_build_installs_the_node(tmp_path):
     src = tmp_path / "src" / "hammer_ros"
     shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".venv", ".git", "build", "install", "log",
                                                              "__pycache__", "*.egg-info", "bags"))
-    env = {k: v for k, v in os.environ.items() if k not in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
+    env = without_bootstrap()
     env.update(AMENT_PREFIX_PATH=str(BIN.parent), PATH=f"{BIN}:{env.get('PATH', '')}")
     proc = subprocess.run([str(BIN / "colcon"), "build", "--packages-select", "hammer_ros"], cwd=tmp_path,
                           env=env, capture_output=True, text=True, timeout=300)

@@ -12,7 +12,7 @@ import sys
 import pytest
 import yaml
 from conftest import REPO
-from ros_helpers import Listener, free_port
+from ros_helpers import Listener, RosProcess, free_port
 
 pytestmark = pytest.mark.ros
 
@@ -27,11 +27,8 @@ def test_params_file_starts_the_node_with_its_parameters(ros_env, tmp_path, name
     path = REPO / "msg_config" / name
     params = yaml.safe_load(path.read_text())["hammer_ros"]["ros__parameters"]
     port = free_port()
-    log = tmp_path / "node.log"
-    with open(log, "w") as out:
-        node = subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file", str(path),
-                                 "-p", f"foxglove_port:={port}", "-p", "diagnosis_period:=0.0"],
-                                env=ros_env, stdout=out, stderr=subprocess.STDOUT)
+    node = RosProcess("hammer_ros.ros.node", {"foxglove_port": port, "diagnosis_period": 0.0}, ros_env,
+                      tmp_path / "node.log", params_file=path)
     listener = Listener(ros_env)
     try:
         client = AsyncParameterClient(listener.node, "hammer_ros")
@@ -44,9 +41,8 @@ def test_params_file_starts_the_node_with_its_parameters(ros_env, tmp_path, name
         assert int(status["foxglove_port"]) == port and status["window"] == str(params["window"])
     finally:
         listener.close()
-        node.send_signal(signal.SIGINT)
-        code = node.wait(timeout=30)
-    assert code == 0, log.read_text()
+        code = node.stop(signal.SIGINT, timeout=30)
+    assert code == 0, node.output()
 
 
 @pytest.mark.parametrize("name", ("float64_cubic_g1.yaml", "joint_state_saturation.yaml"))

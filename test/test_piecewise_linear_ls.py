@@ -29,7 +29,7 @@ from hammer_ros.identification.regression import solve_least_squares
 from hammer_ros.identification.result import rms_error
 from hammer_ros.identification.simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
 from hammer_ros.identification.static_maps import PiecewiseLinearMap
-from hammer_ros.tools.reproduce import plls as paper
+from hammer_ros.reproduce import plls as paper
 
 RUNS = 100  # the paper's Monte Carlo count (~3 s with single-threaded BLAS)
 

@@ -16,7 +16,7 @@ from make_sample_bags import G1, RESONANT
 from hammer_ros.cli import main
 from hammer_ros.diagnosis.causes import CAUSES
 from hammer_ros.identification.linear import root_rss_error
-from hammer_ros.ros.dashboard import CHANNELS, dashboard_topic
+from hammer_ros.messages.dashboard import CHANNELS, dashboard_topic
 
 REPO = Path(__file__).resolve().parents[1]
 HAMMER_ROS = str(Path(sys.executable).parent / "hammer-ros")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from hammer_ros.diagnosis.causes import CAUSES
-from hammer_ros.tools.reproduce import format_markdown
-from hammer_ros.tools.reproduce.real import (
+from hammer_ros.reproduce import format_markdown
+from hammer_ros.reproduce.real import (
     DATA_DIR,
     RECORDS,
     cause_chain,
@@ -106,7 +106,7 @@ def test_native_writes_to_stdout_go_to_stderr_during_the_diagnosis():
     import sys
 
     code = ("import os, sys\n"
-            "from hammer_ros.tools.reproduce.real import native_output_to_stderr\n"
+            "from hammer_ros.reproduce.real import native_output_to_stderr\n"
             "with native_output_to_stderr():\n"
             "    os.write(1, b'native\\n'); print('python')\n"
             "print('{}')\n")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hammer_ros.ros.sample_clock import ArrivalStamper
+from hammer_ros.streaming.sample_clock import ArrivalStamper
 
 RATE = 500.0
 

@@ -23,7 +23,7 @@ from hammer_ros.identification.semiparametric import (
     symmetry_error,
 )
 from hammer_ros.identification.simulate import simulate_hammerstein
-from hammer_ros.tools.reproduce.semiparametric import EXAMPLES, rows
+from hammer_ros.reproduce.semiparametric import EXAMPLES, rows
 
 HAMMER = [str(Path(sys.executable).parent / "hammer-ros")]
 

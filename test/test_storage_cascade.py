@@ -15,7 +15,7 @@ from hammer_ros.diagnosis.split import split_record
 from hammer_ros.diagnosis.storage_cascade import CascadeLayout, linear_cascade_start, plausible_rest, storage_poles
 from hammer_ros.identification.compiled_loops import storage_cascade
 from hammer_ros.identification.static_maps import PiecewiseLinearMap
-from hammer_ros.tools.reproduce.real import RECORDS
+from hammer_ros.reproduce.real import RECORDS
 
 # the two-tank plant: x1(k+1) = x1 + B u - C1 sqrt(x1), x2(k+1) = x2 + C1 sqrt(x1(k+1)) - C2 sqrt(x2)
 B_IN, C1, C2 = 0.05, 0.1, 0.08

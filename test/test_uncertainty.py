@@ -113,7 +113,7 @@ def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
     """The streaming engine: a window whose output is mostly noise (SNR -10 dB) gives a model whose
     pole intervals are wide; it is counted ``uncertain`` and the published model stays, which
     /diagnostics reports as a warning with the last model republished as stale."""
-    from hammer_ros.ros.outputs import DIAGNOSTIC_WARN, diagnostics_message
+    from hammer_ros.messages.outputs import DIAGNOSTIC_WARN, diagnostics_message
     from hammer_ros.streaming.config import EngineConfig
     from hammer_ros.streaming.engine import StreamingEngine
 
@@ -142,8 +142,8 @@ def test_a_solve_with_wide_bounds_is_uncertain_and_the_confident_model_stays():
 def test_the_dashboard_draws_the_intervals():
     """The Foxglove channels of a solve: each pole's 95 % intervals of re, im and |p| around it, and the
     map's band F -+ 1.96 sd at every point drawn."""
-    from hammer_ros.ros.dashboard import dashboard_messages
-    from hammer_ros.ros.outputs import result_messages
+    from hammer_ros.messages.dashboard import dashboard_messages
+    from hammer_ros.messages.outputs import result_messages
     from hammer_ros.streaming.config import EngineConfig
     from hammer_ros.streaming.engine import StreamingEngine
 

@@ -2,8 +2,12 @@
 
 Every user mistake ends in exit code 2 and one line on stderr naming the file, field or
 option; results go to stdout (one JSON document with --json), logs/progress to stderr.
-The subcommands ``diagnose`` and ``replay`` are modules of this package; ``demo``, ``bench``
-and ``reproduce`` are the tools of ``hammer_ros.tools``, imported only when they run.
+``identify`` is a layer over the Python API (``hammer_ros.api``); so is the record loading of ``identify``
+and ``diagnose`` (``common.load_data`` = ``hammer_ros.read``). The subcommands ``diagnose``, ``replay`` and
+``fleet`` are modules of this package; ``reproduce`` is ``hammer_ros.reproduce``; ``demo`` and ``bench`` are
+tools of ``hammer_ros.tools``, the layer above, run by module name when the subcommand runs (never imported
+here: ``bench`` imports this package to run ``replay`` as the command line does).
+May import every layer except ``tools``.
 """
 
 from __future__ import annotations
@@ -12,7 +16,6 @@ import argparse
 import importlib
 import os
 import sys
-from dataclasses import replace
 
 import numpy as np
 
@@ -28,8 +31,9 @@ from .common import (
     options_from_args,
     positive_int,
     split_choice,
-    with_reference,
 )
+
+__all__ = ["build_parser", "main"]
 
 REPRODUCE_TARGETS = ("cls", "plls", "bf", "semiparametric", "real")
 # `all`: the papers' numerical examples; `real` (the measured records, minutes of diagnosis) runs on its own
@@ -38,44 +42,22 @@ REPRODUCE_ALL = ("cls", "plls", "bf", "semiparametric")
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    from ..identification.methods import identify
+    from ..api import identify
 
     options = options_from_args(args)
     record = load_data(args.data, args)
-    options = replace(with_reference(options, record), runs=record.runs)
     try:
-        result = identify(args.method, record.v, record.y, options)
+        model = identify(record, method=args.method, refine=args.refine, **vars(options))
     except IdentificationError as exc:  # name the data the method could not identify from
         raise IdentificationError(f"{data_name(args.data)}: {exc}") from None
-    if args.refine:
-        from ..identification.instrumental import refinement_input
-        from ..identification.refinement import refine_result
-
-        result = refine_result(result, refinement_input(record.v, record.r, record.runs), record.y, record.runs)
-    doc = result.to_json(record.v, record.y, record.runs, warnings=(*record.warnings, *_closed_loop(result, record)))
-    doc["runs"] = record.run_count
+    doc = model.to_dict()
     emit(doc, args.json, format_model(doc))
     return 0
 
 
 
-def _closed_loop(result, record) -> tuple:
-    """The ``closed_loop`` warning of a model identified without a reference (``trust.closed_loop_warnings``
-    on its free-run residual)."""
-    from ..identification.runs import Runs
-    from ..identification.trust import closed_loop_warnings
-
-    if record.r is not None:
-        return ()
-    runs = record.runs or Runs.one(len(record))
-    with np.errstate(all="ignore"):
-        residual = record.y - runs.simulate(result.simulate, record.v)
-    return closed_loop_warnings(record.v, residual)
-
-
-
 def cmd_reproduce(args: argparse.Namespace) -> int:
-    from ..tools.reproduce import format_markdown, reproduce_rows
+    from ..reproduce import format_markdown, reproduce_rows
 
     targets = REPRODUCE_ALL if args.target == "all" else (args.target,)
     rows = reproduce_rows(targets, runs=args.runs, seed=args.seed)

@@ -6,8 +6,6 @@ import argparse
 import json
 import re
 import sys
-from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
@@ -137,34 +135,13 @@ def options_from_args(args: argparse.Namespace) -> IdentifyOptions:
     )
 
 
-def with_reference(options: IdentifyOptions, record) -> IdentifyOptions:
-    """``options`` with the record's reference (``--reference``) as the instrument."""
-    return options if record.r is None else replace(options, reference=record.r)
-
-
-
-def is_bag(path: str) -> bool:
-    p = Path(path)
-    return p.suffix.lower() == ".mcap" or p.is_dir()
-
-
-
 def load_data(paths: str | list[str], args: argparse.Namespace):
-    """The Record behind DATA: a CSV/NPZ file, or a bag with --input/--output or --config; several
-    DATA are one record of runs (``io.records.concatenate_records``)."""
-    from ..io.records import concatenate_records, load_record
+    """The Record behind DATA (``hammer_ros.read``): a CSV/NPZ file, or a bag with --input/--output or
+    --config; several DATA are one record of runs (``io.records.concatenate_records``)."""
+    from ..api import read
 
-    if not isinstance(paths, str):
-        return concatenate_records([load_data(path, args) for path in paths])
-    path = paths
-    if is_bag(path):
-        from ..io.bags import load_bag_record
-
-        return load_bag_record(path, input_spec=args.input, output_spec=args.output, config=args.config,
-                               reference_spec=getattr(args, "reference", None))
-    if getattr(args, "config", None):
-        raise UsageError(f"--config: a msg_config maps bag topics, but {path} is a CSV/NPZ file (use --input/--output)")
-    return load_record(path, args.input or "u", args.output or "y", reference_name=getattr(args, "reference", None))
+    return read(paths, input=args.input, output=args.output, config=getattr(args, "config", None),
+                reference=getattr(args, "reference", None))
 
 
 def data_name(paths: str | list[str]) -> str:

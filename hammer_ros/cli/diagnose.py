@@ -6,55 +6,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 
 import numpy as np
 
 from ..diagnosis.causes import EXTENSION, MEANING
 from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST
-from ..diagnosis.coverage import auto_split
 from ..diagnosis.diagnose import Diagnosis, diagnose
-from ..diagnosis.split import Split, check_split, split_record
 from ..errors import IdentificationError, UsageError
-from ..identification.instrumental import check_reference
-from ..identification.trust import (
-    ModelWarning,
-    closed_loop_warning,
-    excitation_warnings,
-    fit_warnings,
-    warnings_json,
-)
-
-
-def load_split(args: argparse.Namespace) -> tuple[Split, tuple[ModelWarning, ...]]:
-    """DATA split at --split, or DATA for estimation and --validation DATA2 for validation; with what
-    loading the records had to say (``Record.warnings``)."""
-    from .common import load_data
-
-    record = load_data(args.data, args)
-    if args.validation:
-        validation = load_data(args.validation, args)
-        split = Split(record.v, record.y, validation.v, validation.y, continuous=False)
-        check_split(split)
-        warnings = (*record.warnings, *validation.warnings)
-        if record.r is None:
-            return split, warnings
-        return replace(split, r_est=check_reference(record.r, record.v.size),
-                       r_val=check_reference(validation.r, validation.v.size)), warnings
-    if args.split == "auto":
-        return auto_split(record.v, record.y, record.r), record.warnings
-    return split_record(record.v, record.y, args.split, record.r), record.warnings
-
-
-def diagnosis_warnings(d: Diagnosis, split: Split) -> tuple[ModelWarning, ...]:
-    """The diagnosis' reasons not to trust its models (``identification.trust``): the baseline's
-    validation fit, the estimation part's excitation, and the ``closed_loop`` evidence row when it
-    fails without a reference."""
-    closed = next((e for e in d.evidence if e.test == CLOSED_LOOP_TEST), None)
-    feedback = closed is not None and not closed.passed and split.r_est is None
-    return (*fit_warnings(d.baseline.fit_percent, "the validation data"),
-            *excitation_warnings(split.v_est, split.y_est),
-            *((closed_loop_warning(closed.value, closed.bound),) if feedback else ()))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,24 +20,29 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--order: must be >= 1 (got {args.order})")
     if args.delay is not None and args.order is not None and args.delay > args.order:
         raise UsageError(f"--delay: relative degree {args.delay} exceeds --order {args.order}")
-    split, record_warnings = load_split(args)
+    from .. import api
+    from .common import data_name, load_data
+
+    record = load_data(args.data, args)
+    validation = load_data(args.validation, args) if args.validation else None
+    split, record_warnings = api.split_records(record, split=args.split, validation=validation)
     try:
         result = diagnose(split, args.order, args.delay)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
-        raise IdentificationError(f"{args.data}: no Hammerstein model can be fitted to this record ({exc})") from None
+        raise IdentificationError(f"{data_name(args.data)}: no Hammerstein model can be fitted to this record "
+                                  f"({exc})") from None
     if args.report:
         from ..diagnosis.report import write_report
 
         try:
-            write_report(result, args.report, title=f"hammer-ros diagnose {args.data}")
+            write_report(result, args.report, title=f"hammer-ros diagnose {' '.join(args.data)}")
         except OSError as exc:
             raise UsageError(f"--report: cannot write {args.report} ({exc.strerror or exc})") from None
         print(f"report written to {args.report}", file=sys.stderr)
     from .common import emit, format_warnings
 
-    warnings = (*record_warnings, *diagnosis_warnings(result.diagnosis, split))
-    emit({**result.diagnosis.to_json(), "warnings": warnings_json(warnings)}, args.json,
-         "\n".join([summary(result.diagnosis), *format_warnings(warnings_json(warnings))]))
+    doc = api.Diagnosis(result, split, record_warnings).to_dict()
+    emit(doc, args.json, "\n".join([summary(result.diagnosis), *format_warnings(doc["warnings"])]))
     return 0
 
 

@@ -27,14 +27,8 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.runner import FleetProgress, connect, run_fleet
     from ..fleet.table import read_rows, write_parquet
     from ..identification.methods import REFERENCE_METHODS
-    from ..io.bags import (
-        config_channels,
-        engine_config_from_params,
-        forget_warnings,
-        load_msg_config,
-        stream_spec,
-        stream_specs,
-    )
+    from ..io.bag_config import config_channels, engine_config_from_params, load_msg_config, stream_spec, stream_specs
+    from ..io.bag_index import forget_warnings
     from .replay import SignalStop, channel_runs, replay_settings
 
     forget_warnings()
@@ -175,7 +169,7 @@ def _sources(args: argparse.Namespace):
 def _check_first_bag(sources, excitation, response, reference=None) -> None:
     """The topics and fields on the first bag that can be read (a bag that cannot be read at all
     becomes an error row): a fleet whose bags lack them is a user mistake, found before any task."""
-    from ..io.bags import bag_topics
+    from ..io.bag_index import bag_topics
     from ..io.replay import check_replay_input
 
     for source in sources:

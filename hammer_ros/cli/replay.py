@@ -34,18 +34,16 @@ from pathlib import Path
 
 from ..errors import UsageError
 from ..identification.methods import REFERENCE_METHODS
-from ..io.bags import (
+from ..io.bag_config import (
     Channel,
-    bag_duration,
-    bag_message_counts,
-    check_output_path,
     config_channels,
     engine_config_from_params,
-    forget_warnings,
     load_msg_config,
     stream_spec,
     stream_specs,
 )
+from ..io.bag_index import bag_duration, bag_message_counts, forget_warnings
+from ..io.bag_writer import check_output_path
 from ..io.replay import NODE_NAME, SOLVE_BATCH, ChannelReplay, check_replay_input, replay_bag, replay_channels
 from ..streaming.config import CLS_STRUCTURES, EngineConfig
 from ..streaming.solver_process import SolverProcess

@@ -11,7 +11,10 @@ PD) position loop on its encoder at ``substeps`` x the sample rate, its torque l
 
 u the goal position (rad), q the arm angle, q_enc = q quantised to ``counts`` a turn (the
 measured output as well), J the rotor's reflected inertia plus m l^2. Runs start at rest at
-their first command; a record is runs concatenated (each run ends at rest where the next starts).
+their first command. ``servo_record``: runs that start and end at 0, so that they concatenate
+seamlessly; ``servo_runs_record``: runs as real experiments come, each from rest at its own random
+goal (the arm reset between runs) and ending wherever its trajectory leaves it, so that their
+concatenation jumps at every boundary; they are given as runs (``identification.runs.Runs``).
 
 **DC motor behind an H-bridge** (``dc_motor_staircase``): armature voltage v through an
 asymmetric dead zone (the bridge's and the brushes' threshold: nothing below +d_pos or above
@@ -26,6 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import signal
+
+from ..identification.runs import Runs
 
 GRAVITY = 9.81
 
@@ -131,6 +136,57 @@ class ServoRecord:
     y_est: np.ndarray
     u_val: np.ndarray
     y_val: np.ndarray
+    runs_est: Runs | None = None  # the separate experiments of each part (None: runs that concatenate at rest)
+    runs_val: Runs | None = None
+
+
+RUN_KINDS = ("steps", "ramps", "chirp", "smooth")
+START_HOLD = (0.2, 0.6)  # s at the start level before the trajectory moves (the run starts at rest)
+
+
+def run_trajectory(kind: str, rng: np.random.Generator, samples: int, rate: float, amplitude: float) -> np.ndarray:
+    """One goal trajectory as an experiment is run: held at a random start level (the arm reset
+    there, at rest) for START_HOLD, then ``kind``: random steps held 0.6-1.4 s, ramps to random
+    levels, a chirp of growing frequency and amplitude about the start level, or a smooth random
+    path; it ends wherever it is (not at rest, not at the start). Within +-1.2 ``amplitude``."""
+    start = amplitude * rng.uniform(-0.8, 0.8)
+    hold = int(round(rate * rng.uniform(*START_HOLD)))
+    n = samples - hold
+    t = np.arange(n) / rate
+    if kind == "steps":
+        moving = np.concatenate([np.full(int(rate * rng.uniform(0.6, 1.4)), amplitude * rng.uniform(-1.0, 1.0))
+                                 for _ in range(int(n / (0.6 * rate)) + 1)])[:n]
+    elif kind == "ramps":
+        knots = np.concatenate([[0.0], np.cumsum(rng.uniform(0.5, 1.5, int(n / (0.5 * rate)) + 2))]) * rate
+        levels = np.concatenate([[start], amplitude * rng.uniform(-1.0, 1.0, knots.size - 1)])
+        moving = np.interp(np.arange(n), knots, levels)
+    elif kind == "chirp":
+        growth = np.minimum(1.0, t / max(t[-1], 1e-9) * 2.0)
+        moving = start + amplitude * rng.uniform(0.3, 0.7) * growth * signal.chirp(t, 0.2, t[-1], rng.uniform(1.0, 2.0))
+    else:
+        b, a = signal.butter(2, 0.8 / (rate / 2))
+        path = signal.lfilter(b, a, rng.standard_normal(n))
+        moving = start + amplitude * 0.8 * path / (np.max(np.abs(path)) or 1.0)
+    return np.clip(np.concatenate([np.full(hold, start), moving]), -1.2 * amplitude, 1.2 * amplitude)
+
+
+def servo_runs_record(arm: ServoArm, runs: int = 8, samples: int = 600, amplitude: float = 1.0,
+                      torque_noise: float = 0.01, seed: int = 0) -> ServoRecord:
+    """``runs`` estimation and ``runs`` validation experiments of ``samples`` each (the kinds of
+    ``run_trajectory`` in turn, every one with its own draws), each from rest at its own start
+    (``simulate_servo`` at rest at the run's first goal), concatenated and given as runs."""
+    rng = np.random.default_rng([seed, 50])
+
+    def record(first: int) -> tuple[np.ndarray, np.ndarray]:
+        goals = [run_trajectory(RUN_KINDS[i % len(RUN_KINDS)], rng, samples, arm.rate, amplitude) for i in range(runs)]
+        outputs = [simulate_servo(arm, u, seed=1000 * seed + first + i, torque_noise=torque_noise)
+                   for i, u in enumerate(goals)]
+        return np.concatenate(goals), np.concatenate(outputs)
+
+    u_est, y_est = record(0)
+    u_val, y_val = record(500)
+    lengths = [samples] * runs
+    return ServoRecord(arm, u_est, y_est, u_val, y_val, Runs.from_lengths(lengths), Runs.from_lengths(lengths))
 
 
 def servo_record(arm: ServoArm, seconds: float = 8.0, repeats: int = 2, amplitude: float = 1.0,
@@ -207,11 +263,19 @@ def _physical_servo(theta, u, y0: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def fit_physical_servo(u: np.ndarray, y: np.ndarray, starts: int = 4, seed: int = 0):
+def physical_servo_runs(theta, u: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> np.ndarray:
+    """The 7-parameter loop on every run of (u, y), each from rest at its own measured y(start)."""
+    runs = Runs.one(np.size(u)) if runs is None else runs
+    return np.concatenate([_physical_servo(theta, part, float(first[0]))
+                           for part, first in zip(runs.split(u), runs.split(y))])
+
+
+def fit_physical_servo(u: np.ndarray, y: np.ndarray, starts: int = 4, seed: int = 0, runs: Runs | None = None):
     """The yardstick a control engineer writes in a few lines: the discrete servo loop
     w(k+1) = w(k) + clip(K (u + o - y), -T, T) - G sin(y - p) - B w - C sign(w), y(k+1) = y(k) + w(k+1)
     (7 parameters: K, T, G, p, B, C, o) fitted on the simulation error (scipy least_squares from
-    ``starts`` random starts). Returns (theta, simulate: u -> y from rest at y(0))."""
+    ``starts`` random starts; with ``runs`` every run simulated from rest at its own measured
+    y(start), ``physical_servo_runs``). Returns (theta, simulate: u -> y from rest at y(0))."""
     from scipy.optimize import least_squares
 
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
@@ -221,7 +285,7 @@ def fit_physical_servo(u: np.ndarray, y: np.ndarray, starts: int = 4, seed: int 
         theta0 = np.array([rng.uniform(0.005, 0.05), rng.uniform(0.002, 0.02), rng.uniform(0.0, 0.01),
                            rng.uniform(-np.pi, np.pi), rng.uniform(0.05, 0.4), rng.uniform(0.0, 0.002), 0.0])
         try:
-            found = least_squares(lambda t: _physical_servo(t, u, y[0]) - y, theta0, max_nfev=300)
+            found = least_squares(lambda t: physical_servo_runs(t, u, y, runs) - y, theta0, max_nfev=300)
         except ValueError:
             continue
         if best is None or found.cost < best.cost:

@@ -36,12 +36,13 @@ from scipy import signal
 from scipy.optimize import minimize_scalar
 
 from ..identification.regression import solve_least_squares
+from ..identification.runs import Runs
 from ..identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
 from .evidence import DYNAMIC_POLES, dynamics_basis, hinges, partial_f_test, trend_test
 from .extensions import NUMERICAL_FAILURES, ExtendedModel, failure_reason, linear_fit, map_on, map_plot
 from .hammerstein import quantile_partition
-from .split import Split
+from .split import Split, per_run
 
 MAX_STEPS = 3
 MIN_STEP_GAIN = 1.05
@@ -80,16 +81,17 @@ class Chain:
         return self.models[-1]
 
 
-def follow_up_signatures(v: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
+def follow_up_signatures(v: np.ndarray, x: np.ndarray, runs: Runs | None = None) -> dict[str, np.ndarray]:
     """The regressors whose significance in the residual of a model with output x (input v)
     supports each follow-up: a static map of the output, linear dynamics of the input, linear
     dynamics of the output, and a static map of low-pass filtered inputs beyond one of the
-    input itself."""
-    smooth = [signal.lfilter([1.0 - p], [1.0, -p], v, zi=[p * v[0]])[0] for p in DYNAMIC_POLES[1:]]
+    input itself (``runs``: every filter and lag starts anew at each run)."""
+    smooth = [per_run(lambda u, p=p: signal.lfilter([1.0 - p], [1.0, -p], u, zi=[p * u[0]])[0], v, runs)
+              for p in DYNAMIC_POLES[1:]]
     return {
         "output_nonlinearity": hinges(x),
-        "parallel_path": dynamics_basis(v),
-        "unmodeled_dynamics": dynamics_basis(x),
+        "parallel_path": per_run(dynamics_basis, v, runs),
+        "unmodeled_dynamics": per_run(dynamics_basis, x, runs),
         "input_dynamics": np.column_stack([hinges(s, 3) for s in smooth]),
     }
 
@@ -113,8 +115,10 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
     first_rms = split.validation_rms(first.validation_output)
     steps = [Step(first.cause, first.structure, first_rms, baseline_rms / max(first_rms, 1e-300))]
     models = [first]
-    val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
-    rows = split.judged_rows[split.judged_rows >= val_skip]
+    val_runs = split.val_runs
+    val_skip = 0 if split.continuous else min(skip, int(val_runs.lengths.min()) // 5)
+    rows = split.judged_rows[split.judged_rows >= val_skip] if val_runs.count == 1 else np.intersect1d(
+        split.judged_rows, val_runs.rows(val_skip))
     failures: list[tuple[str, str]] = []
 
     def stop(reason: str) -> Chain:
@@ -130,7 +134,7 @@ def extend_chain(split: Split, first: ExtendedModel, baseline_rms: float, skip: 
         x_val = model.validation_output
         e_val = split.y_val - x_val
         supported = []
-        for cause, columns in follow_up_signatures(split.v_val, x_val).items():
+        for cause, columns in follow_up_signatures(split.v_val, x_val, split.runs_val).items():
             f_value, critical, _ = partial_f_test(e_val, np.column_stack([np.ones_like(x_val), x_val]), columns,
                                                   rows)
             if f_value > critical:
@@ -198,7 +202,7 @@ def constant_beyond(m: PiecewiseLinearMap, lo: float, hi: float) -> PiecewiseLin
 def follow_output_nonlinearity(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = N(M(u)) (a sensor or an output stage after the model)."""
     inner = model.simulate
-    x = inner(split.v_est)
+    x = split.estimation_output(inner)
     n_map, continuation = _output_map(x, split.y_est, skip)
 
     def simulate(u: np.ndarray) -> np.ndarray:
@@ -211,13 +215,14 @@ def follow_output_nonlinearity(split: Split, model: ExtendedModel, skip: int) ->
 
 
 def _filter_refined(source: np.ndarray, target: np.ndarray, b0: np.ndarray, a0: np.ndarray,
-                    offset: np.ndarray, skip: int) -> tuple[np.ndarray, np.ndarray]:
-    """(b, a) of B/A minimising ||target - offset - B/A source||^2 from (b0, a0)."""
+                    offset: np.ndarray, skip: int, runs: Runs | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of B/A minimising ||target - offset - B/A source||^2 from (b0, a0) (``runs``: B/A
+    from rest at every run's first sample)."""
     nb = b0.size
 
     def simulate_theta(theta: np.ndarray) -> np.ndarray:
         a = stabilised_denominator(np.concatenate([[1.0], theta[nb:]]))
-        return offset + steady_state_filter(theta[:nb], a, source)
+        return offset + per_run(lambda z: steady_state_filter(theta[:nb], a, z), source, runs)
 
     theta = refine(simulate_theta, np.concatenate([b0, a0[1:]]), target, 30, skip)
     return theta[:nb], stabilised_denominator(np.concatenate([[1.0], theta[nb:]]))
@@ -226,9 +231,9 @@ def _filter_refined(source: np.ndarray, target: np.ndarray, b0: np.ndarray, a0: 
 def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = M(u) + G[u], G of order 2 (paper 003's feedforward structure around M)."""
     inner, v = model.simulate, split.v_est
-    x = inner(v)
+    x = split.estimation_output(inner)
     b0, a0 = linear_fit(v, split.y_est - x, 2, 0)
-    b, a = _filter_refined(v, split.y_est, b0, a0, x, skip)
+    b, a = _filter_refined(v, split.y_est, b0, a0, x, skip, split.runs_est)
 
     def simulate(u: np.ndarray) -> np.ndarray:
         return inner(u) + steady_state_filter(b, a, u)
@@ -241,9 +246,9 @@ def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> Exten
 def follow_unmodeled_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = H[M(u)], H of order 2 started at H = 1 (dynamics the model's blocks lack)."""
     inner = model.simulate
-    x = inner(split.v_est)
+    x = split.estimation_output(inner)
     b, a = _filter_refined(x, split.y_est, np.array([1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.zeros(x.size),
-                           skip)
+                           skip, split.runs_est)
 
     def simulate(u: np.ndarray) -> np.ndarray:
         return steady_state_filter(b, a, inner(u))
@@ -262,11 +267,11 @@ def _low_pass(p: float) -> Simulator:
 def follow_input_dynamics(split: Split, model: ExtendedModel, skip: int) -> ExtendedModel:
     """y = M(L_p[u]) with the unit-gain low-pass L_p = (1 - p) / (1 - p q^-1) (a filter ahead of
     everything the model holds): p from a scan, then a bounded scalar search."""
-    inner, v, y = model.simulate, split.v_est, split.y_est
+    inner, y = model.simulate, split.y_est
 
     def cost(p: float) -> float:
         with np.errstate(all="ignore"):
-            r = (y - inner(_low_pass(p)(v)))[skip:]
+            r = (y - split.estimation_output(lambda u: inner(_low_pass(p)(u))))[skip:]
         value = float(np.sum(r**2))
         return value if np.isfinite(value) else np.inf
 

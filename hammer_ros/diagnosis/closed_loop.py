@@ -34,6 +34,7 @@ from scipy import signal
 
 from ..identification.instrumental import causal_projection
 from ..identification.regression import lagged_columns, solve_least_squares
+from ..identification.trust import ModelWarning, closed_loop_warning, is_trajectory
 from .residual_tests import MAX_LAG, Evidence, bartlett_cross_sigma, simultaneous_level
 
 AR_ORDER = 10
@@ -79,3 +80,16 @@ def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX
     value, bound = float(np.max(np.abs(r))), simultaneous_level(max_lag) * sigma
     note = REFERENCE_NOTE if reference else ("" if value <= bound else WARNING)
     return Evidence(TEST_NAME, value, bound, value <= bound, note=note)
+
+
+def closed_loop_warnings(v: np.ndarray, residual: np.ndarray) -> tuple[ModelWarning, ...]:
+    """``closed_loop`` (``identification.trust``) when ``closed_loop_evidence`` fails on a model's
+    free-run residual. Not for short records, nor for a trajectory (``trust.is_trajectory``): the
+    test prewhitens the input as a random process, and a planned motion's future follows from its
+    past, so a model error alone would fail it."""
+    v, residual = np.asarray(v, dtype=float), np.asarray(residual, dtype=float)
+    if v.size < 200 or not np.all(np.isfinite(residual)) or is_trajectory(v):
+        return ()
+    with np.errstate(all="ignore"):
+        evidence = closed_loop_evidence(v, residual)
+    return () if evidence.passed else (closed_loop_warning(evidence.value, evidence.bound),)

@@ -31,6 +31,7 @@ import numpy as np
 from scipy import stats
 
 from ..identification.result import fit_percent, rms_error, strict_json
+from ..identification.runs import Runs
 from .chain import Chain, Step, extend_chain
 from .closed_loop import closed_loop_evidence
 from .coverage import input_coverage
@@ -145,27 +146,31 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     measured input."""
     measured = split
     split = split.reference_input()
-    dead_time = 0 if delay is not None else select_dead_time(split.v_est, split.y_est, order)
+    dead_time = 0 if delay is not None else select_dead_time(split.v_est, split.y_est, order, split.runs_est)
     split = split.delayed_input(dead_time)
     measured_v_val = measured.delayed_input(dead_time).v_val
-    base = fit_baseline(split.v_est, split.y_est, order, delay)
+    base = fit_baseline(split.v_est, split.y_est, order, delay, split.runs_est)
     skip = transient_samples(base.linear.poles, split.n_est)
     coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5))
     judgeable = coverage.passed or int(np.count_nonzero(coverage.covered)) >= MIN_SAMPLES
     if judgeable:
         split = replace(split, judged=coverage.judged())
-    x_est = base.simulate(split.v_est)
+    x_est = split.estimation_output(base.simulate)
     x_val = split.validation_output(base.simulate)
     e_val = split.y_val - x_val
-    val_skip = 0 if split.continuous else min(skip, split.v_val.size // 5)
-    rows = split.judged_rows[split.judged_rows >= val_skip]
+    val_runs = split.val_runs
+    val_skip = 0 if split.continuous else min(skip, int(val_runs.lengths.min()) // 5)
+    rows = split.judged_rows[split.judged_rows >= val_skip] if val_runs.count == 1 else np.intersect1d(
+        split.judged_rows, val_runs.rows(val_skip))  # every validation run starts at rest: its transient left out
+    tested_runs = _runs_of(val_runs, rows) if split.has_runs else None
 
-    correlation = tuple(residual_tests(split.v_val[rows], split.y_val[rows], e_val[rows]))
+    correlation = tuple(residual_tests(split.v_val[rows], split.y_val[rows], e_val[rows], runs=tested_runs))
     lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
     windows = windowed_variation(split.judged_record(split.y_est, split.y_val),
-                                 split.judged_record(x_est, x_val), skip)
-    shape = correlation_shape_test(split.v_est, split.y_est)
-    cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, rows)) + (
+                                 split.judged_record(x_est, x_val), skip,
+                                 runs=_judged_runs(split) if split.has_runs else None)
+    shape = correlation_shape_test(split.v_est, split.y_est, runs=split.runs_est)
+    cause_tests = tuple(signature_tests(base, split.v_val, x_val, e_val, rows, runs=split.runs_val)) + (
         lines.cause_test(), windows.cause_test()) + ((shape,) if shape is not None else ())
 
     ctx = Context(split, base, lines, windows)
@@ -253,6 +258,19 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
         split_note=split.note,
     )
     return DiagnosisRun(diagnosis, split, base, x_val, correlation, cause_tests, lines, windows, extensions, chain)
+
+
+def _runs_of(runs: Runs, rows: np.ndarray) -> Runs:
+    """The runs of the samples ``rows`` (sorted indices into a record of ``runs``) taken out."""
+    return Runs.from_labels(np.repeat(np.arange(runs.count), runs.lengths)[rows])
+
+
+def _judged_runs(split: Split) -> Runs:
+    """The runs of ``Split.judged_record`` (the estimation runs, then the validation runs' judged samples)."""
+    label = np.concatenate([np.repeat(np.arange(split.est_runs.count), split.est_runs.lengths),
+                            split.est_runs.count + np.repeat(np.arange(split.val_runs.count),
+                                                             split.val_runs.lengths)[split.judged_rows]])
+    return Runs.from_labels(label)
 
 
 def _block_t(split: Split, first: np.ndarray, second: np.ndarray) -> tuple[float, int]:

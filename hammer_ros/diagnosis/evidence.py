@@ -32,11 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, signal, stats
 
-from ..identification.correlation import centred_square, cross_correlation, second_order_cross_correlation
+from ..identification.correlation import centred_square, cross_correlation
 from ..identification.piecewise_linear_ls import interval_index
 from ..identification.regression import lagged_columns, solve_least_squares
+from ..identification.runs import Runs
 from .hammerstein import HammersteinModel
 from .residual_tests import Evidence
+from .split import per_run
 
 LEVEL = 0.99
 TREND_BLOCKS = 10  # blocks of the record whose mean levels the drift test compares
@@ -151,21 +153,25 @@ def last_direction(v: np.ndarray) -> np.ndarray:
 
 
 def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np.ndarray,
-                    skip: int | np.ndarray) -> list[CauseTest]:
+                    skip: int | np.ndarray, runs: Runs | None = None) -> list[CauseTest]:
     """The regression-signature tests on one record (v input, x baseline output, e = y - x), on
-    the samples ``test_rows(skip)``."""
+    the samples ``test_rows(skip)``; with ``runs`` every filter, lag and difference of the
+    regressors starts anew at each run."""
     def through_g(columns: np.ndarray) -> np.ndarray:
-        return signal.lfilter(model.b, model.a, columns, axis=0)
+        return per_run(lambda c: signal.lfilter(model.b, model.a, c, axis=0), columns, runs)
+
+    def difference(z: np.ndarray) -> np.ndarray:
+        return per_run(lambda part: np.diff(part, prepend=part[0]), z, runs)
 
     fv = model.static(v)
     slope = model.slopes[interval_index(v, model.partition)]
-    direction = last_direction(v)
+    direction = per_run(last_direction, v, runs)
     nuisance = np.column_stack([np.ones_like(x), x])
     signatures = {
         "output_nonlinearity": ("residual vs static map of simulated output", hinges(x)),
         "output_feedback": ("residual vs G[map of simulated output]", through_g(hinges(x))),
-        "parallel_path": ("residual vs linear dynamics of the input", dynamics_basis(v)),
-        "unmodeled_dynamics": ("residual vs linear dynamics of F(input)", dynamics_basis(fv)),
+        "parallel_path": ("residual vs linear dynamics of the input", per_run(dynamics_basis, v, runs)),
+        "unmodeled_dynamics": ("residual vs linear dynamics of F(input)", per_run(dynamics_basis, fv, runs)),
         "backlash": ("residual vs input direction G[F'(u) sign(du)]",
                      through_g(np.column_stack([slope * direction, direction]))),
     }
@@ -175,7 +181,7 @@ def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np
         tests.append(CauseTest(Evidence(f"{name} (F)", f_value, critical, f_value <= critical, cause), explained))
     # a loop of its own around the plant (a servo): y = G[f(v - y) - h(y) - phi(dy)] leaves, to first order,
     # G[static maps of the loop error v - x and of the output's difference dx] beyond G[map of x]
-    loop = through_g(np.column_stack([hinges(v - x), hinges(np.diff(x, prepend=x[0]))]))
+    loop = through_g(np.column_stack([hinges(v - x), hinges(difference(x))]))
     f_value, critical, explained = partial_f_test(e, np.column_stack([nuisance, signatures["output_feedback"][1]]),
                                                   loop, skip)
     tests.append(CauseTest(Evidence("residual vs G[maps of the loop error u - x and of dx] beyond G[map of x] (F)",
@@ -188,7 +194,7 @@ def signature_tests(model: HammersteinModel, v: np.ndarray, x: np.ndarray, e: np
     raw_map = through_g(hinges(v, INPUT_MAP_HINGES))
     knots = np.quantile(v, np.arange(1, FRONT_STEPS + 1) / (FRONT_STEPS + 1))
     weights = np.column_stack([slope, (v[:, None] > knots[None, :]).astype(float)])
-    high = [_low_pass(v, p) - v for p in FRONT_POLES]
+    high = [per_run(lambda part, p=p: _low_pass(part, p), v, runs) - v for p in FRONT_POLES]
     front = through_g(np.column_stack([weights * h[:, None] for h in high]))
     f_value, critical, _ = partial_f_test(e, np.column_stack([nuisance, raw_map]), front, skip)
     explained = partial_f_test(e, nuisance, np.column_stack([raw_map, front, hinges(x)]), skip)[2]
@@ -202,23 +208,27 @@ def _low_pass(v: np.ndarray, pole: float) -> np.ndarray:
     return signal.lfilter([1.0 - pole], [1.0, -pole], v, zi=[pole * v[0]])[0]
 
 
-def correlation_shape_test(v: np.ndarray, y: np.ndarray, max_lag: int = 20) -> CauseTest | None:
+def correlation_shape_test(v: np.ndarray, y: np.ndarray, max_lag: int = 20,
+                           runs: Runs | None = None) -> CauseTest | None:
     """Billings-Fakhouri's separation of a parallel path (paper 003, eqs. 13, 20, 28): for an
     i.i.d. input, a Hammerstein system's first-order cross-correlation phi_x'y'(tau) and its
     second-order one phi_x'^2y'(tau) are both proportional to the same impulse response h(tau);
     a linear path in parallel adds its own impulse response to the first only. The test: the
     2 x (L+1) matrix of the two correlations (tau = 0..L), each row divided by its standard
     error, has rank one up to noise; its smaller singular value squared is ~ chi^2(L) then.
-    None when the input is not white (the proportionality needs an i.i.d. input)."""
+    None when the input is not white (the proportionality needs an i.i.d. input), or (``runs``)
+    no run holds the lags."""
     x = np.asarray(v, dtype=float) - np.mean(v)
     n = x.size
-    rho = np.abs(_autocorrelation(x, 10)[1:])
+    if runs is not None and not np.any(runs.lengths > 2 * max_lag):
+        return None
+    rho = np.abs(_autocorrelation(x, 10, runs)[1:])
     if np.max(rho) > 4.0 / np.sqrt(n):
         return None
     y = np.asarray(y, dtype=float)
-    first = cross_correlation(x, y - y.mean(), max_lag)[max_lag:]
-    second = second_order_cross_correlation(v, y, max_lag)[max_lag:]
     w = centred_square(v)
+    first = cross_correlation(x, y - y.mean(), max_lag, runs)[max_lag:]
+    second = cross_correlation(w, y - y.mean(), max_lag, runs)[max_lag:]  # second_order_cross_correlation
     sigma1 = np.sqrt(np.var(x) * np.var(y) / n)
     sigma2 = np.sqrt(np.var(w) * np.var(y) / n)
     smallest = np.linalg.svd(np.vstack([first / sigma1, second / sigma2]), compute_uv=False)[-1]
@@ -228,8 +238,8 @@ def correlation_shape_test(v: np.ndarray, y: np.ndarray, max_lag: int = 20) -> C
     return CauseTest(ev, 0.0)
 
 
-def _autocorrelation(x: np.ndarray, max_lag: int) -> np.ndarray:
-    c = cross_correlation(x, x, max_lag)[max_lag:]
+def _autocorrelation(x: np.ndarray, max_lag: int, runs: Runs | None = None) -> np.ndarray:
+    c = cross_correlation(x, x, max_lag, runs)[max_lag:]
     return c / c[0] if c[0] > 0 else c
 
 
@@ -353,18 +363,27 @@ def _step_trend(seq: np.ndarray) -> tuple[float, float, int]:
     return float(t[best]), trend, int(j[best, 0])
 
 
-def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: int = 400) -> WindowTest:
+def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: int = 400,
+                       runs: Runs | None = None) -> WindowTest:
     """Split the record (after ``skip`` transient samples) in windows; in each, fit
     y ~ c + g x + l dx (gain g, lag l) and take the residual level; test the three sequences
-    for a step or a trend against their permutation distribution (fixed seed)."""
+    for a step or a trend against their permutation distribution (fixed seed). With ``runs``
+    the windows that straddle two runs are left out (and dx starts anew at every run)."""
+    dx = per_run(lambda part: np.diff(part, prepend=part[0]), np.asarray(x, float), runs)[skip:]
+    dx[:1] = 0.0  # the record starts at the first sample after the transient
     y, x = np.asarray(y, float)[skip:], np.asarray(x, float)[skip:]
     windows = int(np.clip(y.size // 120, 16, 40))  # >= 16: a perfect step is then a 1e-4 event, not 3 %
     length = y.size // windows
     starts = skip + length * np.arange(windows)
+    if runs is not None and runs.count > 1:
+        label = np.repeat(np.arange(runs.count), runs.lengths)
+        starts = starts[label[starts] == label[starts + length - 1]]
+        windows = starts.size
+        if windows < 4:
+            return WindowTest(starts, np.zeros(windows), 0.0, np.inf, None, None, 0.0)
     rows, ssr_local = [], 0.0
-    dx = np.diff(x, prepend=x[0])
     for w in range(windows):
-        s = slice(w * length, (w + 1) * length)
+        s = slice(starts[w] - skip, starts[w] - skip + length)
         basis = np.column_stack([np.ones(length), x[s], dx[s]])
         theta = solve_least_squares(basis, y[s])
         r = y[s] - basis @ theta
@@ -376,8 +395,8 @@ def windowed_variation(y: np.ndarray, x: np.ndarray, skip: int, permutations: in
     rng = np.random.default_rng(0)
     null = [max(_step_trend(seq[rng.permutation(windows)])[:2]) for _ in range(permutations)]
     threshold = float(np.quantile(null, LEVEL))
-    used = slice(0, windows * length)
-    basis = np.column_stack([np.ones(windows * length), x[used], dx[used]])
+    used = np.concatenate([np.arange(k - skip, k - skip + length) for k in starts])
+    basis = np.column_stack([np.ones(used.size), x[used], dx[used]])
     ssr_global = float(np.sum((y[used] - basis @ solve_least_squares(basis, y[used])) ** 2))
     extra_parameters = 3.0 * (windows - 1) / (windows * length)
     explained = max(0.0, 1.0 - ssr_local / ssr_global - extra_parameters) if ssr_global > 0 else 0.0

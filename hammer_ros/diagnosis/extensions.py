@@ -52,7 +52,7 @@ from .hammerstein import (
     transient_samples,
 )
 from .servo_loop import fit_servo_loop
-from .split import INITIAL_SAMPLES, Split, held_back, rest_input
+from .split import INITIAL_SAMPLES, Split, held_back, per_run, rest_input
 from .storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .wiener_hammerstein import (
     WienerHammersteinFit,
@@ -570,7 +570,7 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     skip = min(ctx.skip, s.n_est // 5)
 
     def score(model: ExtendedModel) -> float:
-        return bic(s.y_est[skip:], model.simulate(s.v_est)[skip:], model.details["parameters"])
+        return bic(s.y_est[skip:], s.estimation_output(model.simulate)[skip:], model.details["parameters"])
 
     return min(forms, key=score)
 
@@ -579,13 +579,13 @@ def servo_loop_model(ctx: Context) -> ExtendedModel:
     """The servo loop (``servo_loop.fit_servo_loop``) as an extension of ``output_feedback``."""
     s = ctx.split
     try:
-        fit = fit_servo_loop(s.v_est, s.y_est)
+        fit = fit_servo_loop(s.v_est, s.y_est, s.runs_est)
     except IdentificationError as error:
         raise NotFitted(f"servo loop: {error}") from error
     simulate = fit.simulate
     output = s.validation_output(simulate)
     f, h, phi = fit.layout.maps(fit.theta)
-    e = held_back(s.v_est, fit.layout.delay) - s.y_est
+    e = per_run(lambda u: held_back(u, fit.layout.delay), s.v_est, s.runs_est) - s.y_est
     maps = (map_plot("f (controller on the loop error u - y)", f, e),
             map_plot("h (output feedback: gravity)", h, s.y_est),
             map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))
@@ -678,14 +678,25 @@ def feedback_loop_model(ctx: Context) -> ExtendedModel:
 
     level = rest_input(base.simulate, float(np.mean(y[:INITIAL_SAMPLES])), v)
     starts = [np.concatenate([[level], t]) for t in starts]  # [initial level, theta]
-    run = layout.runner(v, preroll)
-    fit, cost = _tail_fitting(run, lambda t, tails: layout.simulator(t[1:], 0, tails)(
-        np.concatenate([np.full(preroll, t[0]), v]))[preroll:], y)
+    parts = s.est_runs.split(v)  # the first run from rest at the refined level, the others at their first input
+    runners = [layout.runner(part, preroll) for part in parts]
+
+    def run(extended: np.ndarray) -> np.ndarray:
+        return np.concatenate([runners[0](extended)] + [r(np.concatenate([[part[0]], extended[1:]]))
+                                                        for r, part in zip(runners[1:], parts[1:])])
+
+    def tailed(t: np.ndarray, tails: tuple) -> np.ndarray:
+        simulate = layout.simulator(t[1:], 0, tails)
+        return np.concatenate([simulate(np.concatenate([np.full(preroll, t[0] if i == 0 else part[0]), part]))[preroll:]
+                               for i, part in enumerate(parts)])
+
+    fit, cost = _tail_fitting(run, tailed, y)
 
     schedule = (SCREENED_STARTS, SCREEN_ITERATIONS, KEPT_STARTS, FEEDBACK_ITERATIONS)
     loop_fits = refine_starts([(run, t) for t in starts], y, deterministic, *schedule)
     loop_cost = loop_fits[0][2] if loop_fits else np.inf
-    cascade = cascade_starts(base, f_part, v, level, preroll, delay, random_starts(v.size))
+    # the storage cascade's runner simulates the record as one: not tried on several runs
+    cascade = [] if s.has_runs else cascade_starts(base, f_part, v, level, preroll, delay, random_starts(v.size))
     short = v.size < SHORT_RECORD  # every start screened, more refined: cheap on a short record
     cascade_schedule = (len(cascade) if short else SCREENED_STARTS, SCREEN_ITERATIONS,
                         KEPT_CASCADES if short else KEPT_STARTS, FEEDBACK_ITERATIONS)

@@ -30,9 +30,10 @@ from ..identification.piecewise_linear_ls import (
 )
 from ..identification.regression import build_regression, lagged_columns, solve_least_squares
 from ..identification.result import rms_error
+from ..identification.runs import Runs
 from ..identification.simulation_error import refine, settling_samples, stabilised_denominator, steady_state_filter
 from ..identification.static_maps import PiecewiseLinearMap
-from .split import held_back
+from .split import held_back, per_run, runs_tail
 
 MAX_ORDER_SEARCH = 4
 
@@ -79,6 +80,10 @@ class HammersteinModel:
 
     def parameter_count(self) -> int:
         return self.order + np.count_nonzero(self.b) + self.slopes.size
+
+    def simulate_runs(self, v: np.ndarray, runs: Runs | None) -> np.ndarray:
+        """``simulate`` started anew at every run (at rest at the run's first input)."""
+        return per_run(self.simulate, v, runs)
 
 
 class HammersteinParameters:
@@ -135,21 +140,25 @@ def plls_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int, parti
                             f.slopes, float(f.values[primary - 1]))
 
 
-def steiglitz_mcbride(model: HammersteinModel, v: np.ndarray, y: np.ndarray, iterations: int = 4) -> HammersteinModel:
+def steiglitz_mcbride(model: HammersteinModel, v: np.ndarray, y: np.ndarray, iterations: int = 4,
+                      runs: Runs | None = None) -> HammersteinModel:
     """PLLS on data prefiltered by 1/A_hat, repeated (Steiglitz & McBride 1965): each pass
     solves the PLLS regression of paper 001 (eq. 23: y/A_hat on eta(v)/A_hat and the
     prefiltered constant) and factors it by rank one (eqs. 35-38). At convergence the equation
     error is the simulation error, so the estimate loses the equation-error bias that output
     noise causes: a better start for the refinement than PLLS alone, in the cases where it is
-    (``fit_hammerstein`` keeps the better of the two)."""
+    (``fit_hammerstein`` keeps the better of the two). With ``runs`` every run is filtered on its
+    own and no regressor reaches into another run."""
     eta = model.basis(v)
     skip = transient_samples(model.linear.poles, v.size)
     a = model.a
     current = model
     for _ in range(iterations):
-        reg = build_regression(signal.lfilter([1.0], a, y), signal.lfilter([1.0], a, eta, axis=0),
-                               model.order, model.delay)
-        constant = signal.lfilter([1.0], a, np.ones(v.size))[reg.rows]
+        def prefiltered(x: np.ndarray, a: np.ndarray = a) -> np.ndarray:
+            return per_run(lambda part: signal.lfilter([1.0], a, part, axis=0), x, runs)
+
+        reg = build_regression(prefiltered(y), prefiltered(eta), model.order, model.delay, runs=runs)
+        constant = prefiltered(np.ones(v.size))[reg.rows]
         theta = solve_least_squares(np.column_stack([reg.phi, constant])[skip:], reg.target[skip:])
         a_new, coefficients = reg.split(theta[:-1])
         b, mu = rank_one_factors(coefficients, None, a_new)
@@ -168,15 +177,16 @@ def transient_samples(model_poles: np.ndarray, samples: int) -> int:
 
 
 def refine_hammerstein(model: HammersteinModel, v: np.ndarray, y: np.ndarray, iterations: int = 30,
-                       free_knots: bool = False) -> HammersteinModel:
-    """The model minimising the simulation error on (v, y), started from ``model``."""
+                       free_knots: bool = False, runs: Runs | None = None) -> HammersteinModel:
+    """The model minimising the simulation error on (v, y), started from ``model`` (``runs``:
+    every run simulated from rest at its first input)."""
     params = HammersteinParameters(model, free_knots)
     eta = model.basis(v)
 
     def simulate(theta: np.ndarray) -> np.ndarray:
         m = params.unpack(theta)
         basis = m.basis(v) if free_knots else eta
-        return steady_state_filter(m.b, m.a, basis @ m.slopes + m.kappa)
+        return per_run(lambda x: steady_state_filter(m.b, m.a, x), basis @ m.slopes + m.kappa, runs)
 
     skip = transient_samples(model.linear.poles, y.size)
     refined = params.unpack(refine(simulate, params.pack(model), y, iterations, skip))
@@ -191,29 +201,32 @@ SELECTION_SAMPLES = 20000  # order, delay and breakpoints are chosen on at most 
 
 def fit_hammerstein(v: np.ndarray, y: np.ndarray, order: int, delay: int,
                     partition: np.ndarray | None = None, free_knots: bool = True,
-                    denominators: tuple[np.ndarray, ...] = ()) -> HammersteinModel:
+                    denominators: tuple[np.ndarray, ...] = (), runs: Runs | None = None) -> HammersteinModel:
     """PLLS estimate on a quantile partition (or its Steiglitz-McBride iteration, or that
     iteration started from one of the given ``denominators``, whichever simulates best),
     refined on the simulation error with the breakpoints fixed, then (``free_knots``) with the
-    breakpoints free as well (``free_breakpoints``)."""
+    breakpoints free as well (``free_breakpoints``). With ``runs`` no simulation or regressor
+    crosses a run's boundary (the PLLS start's regression aside: only a start)."""
     if partition is None:
         partition = quantile_partition(v, default_breakpoints(v.size))
     start = plls_hammerstein(v, y, order, delay, partition)
     skip = transient_samples(start.linear.poles, v.size)
-    candidates = [start, steiglitz_mcbride(start, v, y)]
-    candidates += [steiglitz_mcbride(replace(start, a=a), v, y, 3) for a in denominators]
-    costs = [float(np.sum((y - m.simulate(v))[skip:] ** 2)) for m in candidates]
-    model = refine_hammerstein(candidates[int(np.nanargmin(costs))], v, y)
-    return free_breakpoints(model, v, y) if free_knots else model
+    candidates = [start, steiglitz_mcbride(start, v, y, runs=runs)]
+    candidates += [steiglitz_mcbride(replace(start, a=a), v, y, 3, runs) for a in denominators]
+    costs = [float(np.sum((y - m.simulate_runs(v, runs))[skip:] ** 2)) for m in candidates]
+    model = refine_hammerstein(candidates[int(np.nanargmin(costs))], v, y, runs=runs)
+    return free_breakpoints(model, v, y, runs) if free_knots else model
 
 
-def free_breakpoints(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> HammersteinModel:
+def free_breakpoints(model: HammersteinModel, v: np.ndarray, y: np.ndarray,
+                     runs: Runs | None = None) -> HammersteinModel:
     """The refinement with the breakpoints free as well, so that a kink, a dead zone or a relay
     jump is not smeared over the gap between two quantiles (on the last FREE_KNOT_SAMPLES
     samples, then the other parameters on all of them)."""
-    tail = slice(max(0, v.size - FREE_KNOT_SAMPLES), None)
-    model = prune_breakpoints(refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True), v)
-    return refine_hammerstein(model, v, y, iterations=10) if tail.start else model
+    tail, tail_runs = runs_tail(runs, v.size, FREE_KNOT_SAMPLES)
+    model = prune_breakpoints(refine_hammerstein(model, v[tail], y[tail], iterations=15, free_knots=True,
+                                                 runs=tail_runs), v)
+    return refine_hammerstein(model, v, y, iterations=10, runs=runs) if tail.start else model
 
 
 def prune_breakpoints(model: HammersteinModel, v: np.ndarray) -> HammersteinModel:
@@ -241,20 +254,23 @@ def bic(y: np.ndarray, y_sim: np.ndarray, parameters: int) -> float:
     return n * np.log(max(mse, 1e-300)) + parameters * np.log(n)
 
 
-def equation_error_bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> float:
-    """BIC of the one-step equation error A(q) y - B(q) F(v) (for the choice of the delay)."""
-    skip = model.order
-    e = np.convolve(y, model.a)[: y.size] - np.convolve(model.static(v), model.b)[: y.size]
-    return bic(np.zeros(y.size - skip), e[skip:], model.parameter_count())
+def equation_error_bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> float:
+    """BIC of the one-step equation error A(q) y - B(q) F(v) (for the choice of the delay; with
+    ``runs`` from the order-th sample of every run)."""
+    runs = Runs.one(y.size) if runs is None else runs
+    pairs = np.column_stack([y, model.static(v)])
+    e = runs.simulate(lambda p: np.convolve(p[:, 0], model.a)[: p.shape[0]] - np.convolve(p[:, 1], model.b)[
+        : p.shape[0]], pairs)[runs.rows(model.order)]
+    return bic(np.zeros(e.size), e, model.parameter_count())
 
 
-def select_delay(v: np.ndarray, y: np.ndarray, order: int, partition: np.ndarray) -> int:
+def select_delay(v: np.ndarray, y: np.ndarray, order: int, partition: np.ndarray, runs: Runs | None = None) -> int:
     """Relative degree 1..min(3, order) with the smallest equation-error BIC (a sampled plant
     driven through a zero-order hold has no direct feedthrough; pass delay 0 explicitly)."""
     scores = {}
     for d in range(1, min(3, order) + 1):
         try:
-            scores[d] = equation_error_bic(plls_hammerstein(v, y, order, d, partition), v, y)
+            scores[d] = equation_error_bic(plls_hammerstein(v, y, order, d, partition), v, y, runs)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             continue
     if not scores:
@@ -266,7 +282,7 @@ MAX_DEAD_TIME = 12  # samples of pure input delay searched ahead of the linear b
 DEAD_TIME_GAIN = 0.5  # within the order, a shift must halve the simulation RMS
 
 
-def input_delay(v: np.ndarray, y: np.ndarray, order: int) -> int | None:
+def input_delay(v: np.ndarray, y: np.ndarray, order: int, runs: Runs | None = None) -> int | None:
     """The total input delay D: the first lag l = 0..MAX_DEAD_TIME + 1 whose input coefficients
     are significant in an over-parameterised ARX model y(k) = -sum_j a_j y(k-j) +
     sum_l eta(v(k-l))^T g_l + c (order + 2 poles; eta the point-slope basis of paper 001 eq. 9
@@ -277,7 +293,7 @@ def input_delay(v: np.ndarray, y: np.ndarray, order: int) -> int | None:
     partition = quantile_partition(v, 3)
     basis = point_slope_basis(v, partition, max(1, partition.size // 2))
     q = basis.shape[1]
-    rows = np.arange(max(n, lags - 1), v.size)
+    rows = (Runs.one(v.size) if runs is None else runs).rows(max(n, lags - 1))
     phi = np.hstack([-lagged_columns(y, range(1, n + 1), rows), lagged_columns(basis, range(lags), rows),
                      np.ones((rows.size, 1))])
     dof = rows.size - phi.shape[1]
@@ -299,7 +315,7 @@ def input_delay(v: np.ndarray, y: np.ndarray, order: int) -> int | None:
     return None
 
 
-def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None) -> int:
+def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None, runs: Runs | None = None) -> int:
     """Dead time s: samples of pure delay of the input ahead of the linear block, moved into the
     data (v(k - s)) so that the model of the nominal order n holds it.
 
@@ -313,9 +329,9 @@ def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None) -> int:
     alone, or a 10 % margin, prefers a shift on short noisy records too often: measured on
     the generated cases, it cost more than it mended.)"""
     n = order or MAX_ORDER_SEARCH
-    tail = slice(max(0, v.size - SELECTION_SAMPLES), None)  # chosen on the last samples, like the order
+    tail, runs = runs_tail(runs, np.size(v), SELECTION_SAMPLES)  # chosen on the last samples, like the order
     v, y = np.asarray(v, dtype=float)[tail], np.asarray(y, dtype=float)[tail]
-    total = input_delay(v, y, n)
+    total = input_delay(v, y, n, runs)
     if total is None or total <= 1:
         return 0
     if total > n:
@@ -323,48 +339,52 @@ def select_dead_time(v: np.ndarray, y: np.ndarray, order: int | None) -> int:
     partition = quantile_partition(v, default_breakpoints(v.size))
     errors = {}
     for shift, d in ((0, total), (total - 1, 1)):
-        shifted = held_back(v, shift)
+        shifted = per_run(lambda part, shift=shift: held_back(part, shift), v, runs)
         try:
-            model = fit_hammerstein(shifted, y, n, d, partition, free_knots=False)
+            model = fit_hammerstein(shifted, y, n, d, partition, free_knots=False, runs=runs)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             return 0
         skip = max(transient_samples(model.linear.poles, v.size), total + n)
-        errors[shift] = rms_error(y[skip:], model.simulate(shifted)[skip:])
+        errors[shift] = rms_error(y[skip:], model.simulate_runs(shifted, runs)[skip:])
     return total - 1 if errors[total - 1] <= DEAD_TIME_GAIN * errors[0] else 0
 
 
-def fit_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None) -> HammersteinModel:
+def fit_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None,
+                 runs: Runs | None = None) -> HammersteinModel:
     """The baseline: the nominal order when given (else the order 1..4 with the smallest
     simulation-error BIC), the given delay (else the one with the smallest equation-error BIC),
     the breakpoints among ``breakpoint_counts`` with the smallest simulation-error BIC, then
     the breakpoints refined (``free_breakpoints``). The choices are made on the last
-    SELECTION_SAMPLES samples; the chosen model is then refined on all of them."""
-    tail = slice(max(0, v.size - SELECTION_SAMPLES), None)
-    chosen = _select_baseline(v[tail], y[tail], order, delay)
+    SELECTION_SAMPLES samples; the chosen model is then refined on all of them. ``runs``: every
+    simulation starts anew at each run (at rest at its first input), no regressor crosses a run."""
+    tail, tail_runs = runs_tail(runs, np.size(v), SELECTION_SAMPLES)
+    chosen = _select_baseline(v[tail], y[tail], order, delay, tail_runs)
     if tail.start:
-        chosen = refine_hammerstein(chosen, v, y, iterations=15)
-    return free_breakpoints(chosen, v, y)
+        chosen = refine_hammerstein(chosen, v, y, iterations=15, runs=runs)
+    return free_breakpoints(chosen, v, y, runs)
 
 
-def _select_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None) -> HammersteinModel:
+def _select_baseline(v: np.ndarray, y: np.ndarray, order: int | None, delay: int | None,
+                     runs: Runs | None) -> HammersteinModel:
     partition = quantile_partition(v, default_breakpoints(v.size))
     if order:
         best_order = order
-        best_delay = select_delay(v, y, order, partition) if delay is None else min(delay, order)
+        best_delay = select_delay(v, y, order, partition, runs) if delay is None else min(delay, order)
     else:
         scored = []
         for n in range(1, MAX_ORDER_SEARCH + 1):
-            d = select_delay(v, y, n, partition) if delay is None else min(delay, n)
-            scored.append((_bic(fit_hammerstein(v, y, n, d, partition, free_knots=False), v, y), n, d))
+            d = select_delay(v, y, n, partition, runs) if delay is None else min(delay, n)
+            scored.append((_bic(fit_hammerstein(v, y, n, d, partition, free_knots=False, runs=runs), v, y, runs),
+                           n, d))
         _, best_order, best_delay = min(scored)
     fits = []
     for count, tails in breakpoint_counts(v.size):
         try:
             partition = quantile_partition(v, count, tails)
-            model = fit_hammerstein(v, y, best_order, best_delay, partition, free_knots=False)
+            model = fit_hammerstein(v, y, best_order, best_delay, partition, free_knots=False, runs=runs)
         except IdentificationError:
             continue
-        fits.append((_bic(model, v, y), count, model))
+        fits.append((_bic(model, v, y, runs), count, model))
     if not fits:
         raise IdentificationError("no Hammerstein model could be fitted to the estimation data")
     return min(fits, key=lambda f: f[0])[2]
@@ -377,6 +397,6 @@ def breakpoint_counts(samples: int) -> tuple[tuple[int, bool], ...]:
     return tuple((c, tails) for c in counts for tails in ((False, True) if c >= 10 else (False,)))
 
 
-def _bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray) -> float:
+def _bic(model: HammersteinModel, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> float:
     skip = transient_samples(model.linear.poles, v.size)
-    return bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())
+    return bic(y[skip:], model.simulate_runs(v, runs)[skip:], model.parameter_count())

@@ -37,9 +37,10 @@ from ..errors import IdentificationError
 from ..identification.compiled_loops import servo_loop
 from ..identification.piecewise_linear_ls import point_slope_basis, point_slope_map
 from ..identification.regression import solve_least_squares
+from ..identification.runs import Runs
 from ..identification.simulation_error import refine_starts
 from ..identification.static_maps import PiecewiseLinearMap
-from .split import held_back
+from .split import held_back, per_run
 
 MAX_DELAY = 2
 ERROR_LEVELS = (0.1, 0.5, 0.9)  # quantiles of the loop error among f's breakpoints
@@ -136,11 +137,11 @@ class ServoLayout:
         return columns[rows], target
 
 
-def servo_layout(u: np.ndarray, y: np.ndarray, delay: int) -> ServoLayout:
+def servo_layout(u: np.ndarray, y: np.ndarray, delay: int, runs: Runs | None = None) -> ServoLayout:
     """The partitions of the three maps on the estimation data (``ERROR_LEVELS``,
-    ``OUTPUT_LEVELS``, ``SPEED_LEVELS``)."""
-    e = held_back(u, delay) - y
-    w = np.diff(y)
+    ``OUTPUT_LEVELS``, ``SPEED_LEVELS``; ``runs``: no delay or difference across a boundary)."""
+    e = per_run(lambda part: held_back(part, delay), u, runs) - y
+    w = np.concatenate([np.diff(part) for part in (runs.split(y) if runs is not None else [y])])
     moving = np.abs(w[np.abs(w) > 0])
     if moving.size < 20:
         raise IdentificationError("the output hardly moves: no loop to fit")
@@ -203,18 +204,26 @@ class ServoFit:
                 "coulomb_step": float(self.theta[-1])}
 
 
-def fit_servo_loop(u: np.ndarray, y: np.ndarray) -> ServoFit:
+def fit_servo_loop(u: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> ServoFit:
     """The servo loop (module docstring) on the estimation record (u command, y output): for
     every delay 0..MAX_DELAY the least-squares start and its gain/damping variants (``SCALES``),
-    screened and refined on the simulation error from rest at y(0); the best fit."""
+    screened and refined on the simulation error from rest at y(0); the best fit. With ``runs``
+    (separate experiments) every run is smoothed, regressed and simulated on its own, each from
+    rest at its own first measured position."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    runs = None if runs is None or runs.count == 1 else runs
     y0 = float(y[0])
-    smooth = _smoothed(y)
+    smooth = per_run(_smoothed, y, runs)
     candidates = []
     for delay in range(MAX_DELAY + 1):
         try:
-            layout = servo_layout(u, y, delay)
-            columns, target = layout.regressors(u, smooth)
+            layout = servo_layout(u, y, delay, runs)
+            if runs is None:
+                columns, target = layout.regressors(u, smooth)
+            else:
+                pieces = [layout.regressors(part_u, part_y) for part_u, part_y in zip(runs.split(u), runs.split(smooth))
+                          if part_y.size >= 3]
+                columns, target = np.vstack([c for c, _ in pieces]), np.concatenate([t for _, t in pieces])
             theta = solve_least_squares(columns, target)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             continue
@@ -222,7 +231,7 @@ def fit_servo_loop(u: np.ndarray, y: np.ndarray) -> ServoFit:
             candidates += [(layout, _scaled(layout, theta, g, c)) for g, c in SCALES]
     if not candidates:
         raise IdentificationError("no start of the servo loop could be computed")
-    starts = [(_runner(layout, u, y0), theta) for layout, theta in candidates]
+    starts = [(_runner(layout, u, y, runs), theta) for layout, theta in candidates]
     fits = refine_starts(starts, y, 0, 2 * (MAX_DELAY + 1), SCREEN_ITERATIONS, KEPT, ITERATIONS)
     if not fits:
         raise IdentificationError("the simulation of every start of the servo loop diverges")
@@ -230,5 +239,10 @@ def fit_servo_loop(u: np.ndarray, y: np.ndarray) -> ServoFit:
     return ServoFit(candidates[i][0], theta, y0, sse, len(candidates))
 
 
-def _runner(layout: ServoLayout, u: np.ndarray, y0: float) -> Callable[[np.ndarray], np.ndarray]:
-    return lambda theta: layout.simulator(theta, y0)(u)
+def _runner(layout: ServoLayout, u: np.ndarray, y: np.ndarray, runs: Runs | None) -> Callable[[np.ndarray], np.ndarray]:
+    """theta -> the loop's output on u, from rest at y(0) (with ``runs``: every run from its own y(start))."""
+    if runs is None:
+        y0 = float(y[0])
+        return lambda theta: layout.simulator(theta, y0)(u)
+    parts = [(part, float(first[0])) for part, first in zip(runs.split(u), runs.split(y))]
+    return lambda theta: np.concatenate([layout.simulator(theta, y0)(part) for part, y0 in parts])

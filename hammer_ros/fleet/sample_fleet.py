@@ -28,7 +28,7 @@ import numpy as np
 
 from ..identification.linear import LinearModel
 from ..identification.simulate import add_noise, simulate_hammerstein
-from ..io.bags import ResultWriter
+from ..io.bag_writer import ResultWriter
 
 START = datetime.datetime(2026, 11, 1, 6, 0, tzinfo=datetime.timezone.utc)
 RATE = 100.0  # Hz

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import HammerRosError
-from ..io.bags import StreamSpec, forget_warnings
+from ..io.bag_config import StreamSpec
+from ..io.bag_index import forget_warnings
 from ..io.replay import ChannelReplay, check_replay_input, replay_bag, replay_channels
 from ..streaming.config import EngineConfig
 from .sources import BagSource

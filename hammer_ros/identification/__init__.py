@@ -11,3 +11,10 @@ identified model and its JSON) and ``methods`` (the ``--method`` table and ``ide
 May import: numpy, scipy, numba (compiled loops, with a pure-numpy fallback), ``hammer_ros.errors``.
 Never rclpy, never another layer.
 """
+
+__all__ = [
+    "affine", "billings_fakhouri", "closed_loop", "cls_kernel", "compiled_loops", "correlation",
+    "correlation_least_squares", "era", "excitation", "instrumental", "linear", "methods",
+    "piecewise_linear_ls", "refinement", "regression", "result", "runs", "semiparametric", "simulate",
+    "simulation_error", "static_maps", "trust", "uncertainty",
+]

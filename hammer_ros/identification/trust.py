@@ -18,7 +18,9 @@ Pure checks on arrays, each returning a tuple of ``ModelWarning(code, message)``
   kurtosis| > ``MAX_EXCESS_KURTOSIS``: a step has two values, a ramp is uniform, excess kurtosis
   -1.2) or held (more than ``MAX_HELD`` of the samples equal to the one before: setpoints).
 - ``closed_loop``: the diagnosis' feedback test (``diagnosis.closed_loop``: the residual against
-  the input's future innovations) fails on an input that is a random process (not a trajectory).
+  the input's future innovations) fails on an input that is a random process (not a trajectory);
+  the test is run above this layer (``identify``'s ``cli._closed_loop``, the diagnosis), which
+  makes the warning with ``closed_loop_warning``.
 - ``irregular_sampling`` is made where the time stamps are read (``io.resample``).
 
 ``UNTRUSTED`` codes make the streaming engine hold a model back as ``uncertain``.
@@ -164,21 +166,6 @@ def whiteness_warnings(method: str, v: np.ndarray) -> tuple[ModelWarning, ...]:
         return (ModelWarning("input_not_white", f"{method} assumes a white Gaussian input; this one is not "
                                                 f"({shape}): {FOR_STEPS}"),)
     return ()
-
-
-def closed_loop_warnings(v: np.ndarray, residual: np.ndarray) -> tuple[ModelWarning, ...]:
-    """``closed_loop`` when the diagnosis' feedback test fails on the model's residual. Not for a
-    trajectory (``is_trajectory``): the test prewhitens the input as a random process, and a planned
-    motion's future follows from its past, so a model error alone would fail it."""
-    from ..diagnosis.closed_loop import closed_loop_evidence
-
-    if np.asarray(v).size < 200 or not np.all(np.isfinite(residual)) or is_trajectory(v):
-        return ()
-    with np.errstate(all="ignore"):
-        evidence = closed_loop_evidence(v, residual)
-    if evidence.passed:
-        return ()
-    return (closed_loop_warning(evidence.value, evidence.bound),)
 
 
 def closed_loop_warning(value: float, bound: float) -> ModelWarning:

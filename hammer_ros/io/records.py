@@ -36,6 +36,11 @@ class Record:
         return self.v.size
 
     @property
+    def u(self) -> np.ndarray:
+        """The input (the excitation v; the Python API's name)."""
+        return self.v
+
+    @property
     def run_count(self) -> int:
         return 1 if self.runs is None else self.runs.count
 
@@ -49,7 +54,7 @@ class Record:
         )
 
 
-MAX_RECORD_SAMPLES = 10_000_000  # samples of a CSV/NPZ record (also bag_io.MAX_RECORD_SAMPLES)
+MAX_RECORD_SAMPLES = 10_000_000  # samples of a CSV/NPZ record (also bag_reader.MAX_RECORD_SAMPLES)
 MAX_ABS_SAMPLE = 1e100  # larger magnitudes are data errors (their cubes overflow); as in the streaming engine
 
 

@@ -32,29 +32,18 @@ from typing import Protocol
 import numpy as np
 
 from ..errors import IdentificationError, UsageError
-from ..ros.dashboard import record_results
-from ..ros.outputs import (
+from ..messages.outputs import (
     diagnosis_message,
-    diagnostics_message,
-    result_messages,
     seconds_to_ns,
-    stale_model_message,
 )
 from ..streaming.config import EngineConfig, EngineStats
 from ..streaming.engine import SolveOutcome, StreamingEngine, count_outcome, estimate_snapshot, portable_estimate
 from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window
-from .bags import (
-    FLUSH_SAMPLES,
-    BagReadStats,
-    JsonWriter,
-    ResultWriter,
-    StreamSpec,
-    bag_files,
-    bag_message_counts,
-    check_fields,
-    check_topics,
-    iter_role_samples,
-)
+from .bag_config import StreamSpec
+from .bag_index import BagReadStats, bag_files, bag_message_counts
+from .bag_reader import FLUSH_SAMPLES, check_fields, check_topics, iter_role_samples
+from .bag_writer import JsonWriter, ResultWriter, record_results
+from .outcome_messages import outcome_messages
 
 NODE_NAME = "hammer_ros"
 MAX_IN_FLIGHT = 64  # snapshots sent to a SolverProcess and not yet collected
@@ -210,13 +199,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         last_stamp_ns = stamp_ns
         if writer is None and dashboard is None and publisher is None:  # nobody reads the messages (--json)
             return
-        messages = result_messages(last, last_stamp_ns, frame_id)
-        if not last.ok and last_ok is not None:
-            messages.append(stale_model_message(last_ok, last))
-        diagnostics = diagnostics_message(stats, last, last_stamp_ns, node_name)
-        diagnostics["status"][0]["values"].extend(read_values)
-        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-        send(messages, last_stamp_ns)
+        send(outcome_messages(last, last_ok, stats, last_stamp_ns, frame_id=frame_id, status_name=node_name,
+                              complete_status=lambda status: status["values"].extend(read_values)), last_stamp_ns)
 
     def send(messages: list[tuple[str, str, dict]], stamp_ns: int) -> None:
         # first into the files: whatever is published is in them
@@ -388,13 +372,9 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
         final_stamps[index] = stamp
         if writer is None and dashboard is None:
             return
-        messages = result_messages(outcome, stamp, frame_id)
-        if not outcome.ok and last_ok is not None:
-            messages.append(stale_model_message(last_ok, outcome))
-        diagnostics = diagnostics_message(engine.stats, outcome, stamp, f"{node_name}/{channels[index].name}")
-        diagnostics["status"][0]["values"].extend(bag_values(read))
-        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-        send(index, messages, stamp)
+        send(index, outcome_messages(outcome, last_ok, engine.stats, stamp, frame_id=frame_id,
+                                     status_name=f"{node_name}/{channels[index].name}",
+                                     complete_status=lambda status: status["values"].extend(bag_values(read))), stamp)
 
     roles = [((i, stream), spec) for i, c in enumerate(channels)
              for stream, spec in (("excitation", c.excitation), ("response", c.response))]

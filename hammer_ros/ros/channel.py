@@ -33,20 +33,19 @@ from rclpy.expand_topic_name import expand_topic_name  # noqa: E402
 from ..diagnosis.closed_loop import TEST_NAME as CLOSED_LOOP_TEST  # noqa: E402
 from ..diagnosis.closed_loop import WARNING as CLOSED_LOOP_WARNING  # noqa: E402
 from ..identification.result import strict_json  # noqa: E402
-from ..io.bags import ResultWriter  # noqa: E402
-from ..streaming.config import EngineConfig  # noqa: E402
-from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
-from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
-from .dashboard import dashboard_messages, record_results  # noqa: E402
-from .ingest import Ingest  # noqa: E402
-from .outputs import (  # noqa: E402
+from ..io.bag_writer import ResultWriter, record_results  # noqa: E402
+from ..io.outcome_messages import outcome_messages  # noqa: E402
+from ..messages.dashboard import dashboard_messages  # noqa: E402
+from ..messages.outputs import (  # noqa: E402
     diagnosis_message,
     diagnostics_message,
     model_json,
-    result_messages,
-    stale_model_message,
-    to_ros_message,
 )
+from ..streaming.config import EngineConfig  # noqa: E402
+from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
+from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
+from .ingest import Ingest  # noqa: E402
+from .message_types import to_ros_message  # noqa: E402
 from .parameters import ENGINE_FIELDS, REFERENCE, STREAM_PARAMETERS, STREAMS, engine_config, normal_type  # noqa: E402
 
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
@@ -307,14 +306,10 @@ class IdentificationChannel:
         """Publish (and record in output_mcap, first) the results of a solve; after a solve without
         a model, the last good model again, marked stale."""
         stamp = self._now()
-        messages = result_messages(outcome, stamp, self.values["frame_id"])
+        messages = outcome_messages(outcome, self.last_outcome, stats, stamp, frame_id=self.values["frame_id"],
+                                    status_name=self.status_name, complete_status=self._add_node_diagnostics)
         if outcome.ok:
             self.last_outcome = outcome
-        elif self.last_outcome is not None:
-            messages.append(stale_model_message(self.last_outcome, outcome))
-        diagnostics = diagnostics_message(stats, outcome, stamp, self.status_name)
-        self._add_node_diagnostics(diagnostics["status"][0])
-        messages.append(("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray", diagnostics))
         self._send(messages, stamp, publish)
 
     def _send(self, messages: list[tuple[str, str, dict]], stamp_ns: int, publish: bool) -> None:

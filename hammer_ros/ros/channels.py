@@ -1,7 +1,7 @@
 """The channels of a node: N >= 1 ``IdentificationChannel``s (one is the case N = 1: the node's
 parameters, outputs under ``~/``, its status named after the node, parameters settable live);
 several come from a ``channels`` list in the node's params file (the form of
-``io.bags.config_channels``, as ``replay`` reads it), each with its own engine, solve and
+``io.bag_config.config_channels``, as ``replay`` reads it), each with its own engine, solve and
 diagnosis threads and outputs under ``~/NAME/`` (model, poles, zeros, markov, nonlinearity,
 diagnosis), their parameters fixed at startup.
 
@@ -31,11 +31,11 @@ prepare_ros_environment()
 
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
-from .cdr import topic_decoder  # noqa: E402
+from ..messages.outputs import OUTPUT_TOPICS  # noqa: E402
 from .channel import IdentificationChannel, Recorder  # noqa: E402
 from .inputs import SharedTopic, _fanout_callback, _Input, _queueing_callback, built_reader  # noqa: E402
-from .outputs import OUTPUT_TOPICS  # noqa: E402
-from .outputs import _message_class as output_message_class  # noqa: E402
+from .message_types import message_class as output_message_class  # noqa: E402
+from .message_types import topic_decoder  # noqa: E402
 from .parameters import NODE_WIDE, REFERENCE, STREAMS, coerce, normal_type  # noqa: E402
 
 if TYPE_CHECKING:

@@ -22,13 +22,14 @@ import fcntl
 import os
 import sys
 import tempfile
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from pathlib import Path
 
 # ROS_DOMAIN_IDs 1..101 map to UDP ports valid on Linux (0 is everybody's default: never leased)
 DOMAIN_IDS = range(1, 102)
 FAST_DISCOVERY_PROFILE = Path(__file__).resolve().parents[1] / "data" / "fastdds_fast_discovery.xml"
-_BOOTSTRAP_VARIABLES = ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
+# set by the ROS wheels when they re-exec the interpreter: a child of this one must bootstrap itself again
+BOOTSTRAP_VARIABLES = ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
 
 
 def _wheel_prefix() -> str | None:
@@ -53,11 +54,17 @@ def prepare_ros_environment(environ: MutableMapping[str, str] | None = None) -> 
     return env
 
 
+def without_bootstrap(environ: Mapping[str, str] | None = None) -> dict[str, str]:
+    """A copy of ``environ`` (default ``os.environ``) without the ROS wheels' BOOTSTRAP_VARIABLES: the
+    environment of any child process of this interpreter."""
+    return {k: v for k, v in (os.environ if environ is None else environ).items() if k not in BOOTSTRAP_VARIABLES}
+
+
 def child_environment(domain_id: int, log_dir: str | Path | None = None, fast_discovery: bool = True) -> dict[str, str]:
     """Environment for a ROS child process of this interpreter on a private graph: the given
     ROS_DOMAIN_ID, loopback discovery, unbuffered output, and (optionally) the fast-discovery
     FastDDS profile so restarted nodes are rediscovered in well under a second."""
-    env = {k: v for k, v in os.environ.items() if k not in _BOOTSTRAP_VARIABLES}
+    env = without_bootstrap()
     if log_dir is not None:
         env["ROS_LOG_DIR"] = str(log_dir)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"

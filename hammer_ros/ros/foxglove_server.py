@@ -33,8 +33,8 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from ..errors import UsageError
-from .dashboard import CHANNELS, channel_node, dashboard_topic
-from .outputs import checked_ns
+from ..messages.dashboard import CHANNELS, channel_node, dashboard_topic
+from ..messages.outputs import checked_ns
 
 QUEUE = 256  # payloads waiting for the publishing thread; beyond, the oldest are dropped (counted)
 RESEND_PERIOD = 0.2  # s: a client's subscribe flood resends it the latest messages at most this often

@@ -25,13 +25,14 @@ prepare_ros_environment()
 
 from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
 
+from ..messages.cdr import extract_batch  # noqa: E402
+from ..messages.field_path import FieldError, parse_field_path  # noqa: E402
 from ..streaming.config import HOLD_PERIODS  # noqa: E402
 from ..streaming.engine import StreamingEngine  # noqa: E402
-from .cdr import extract_batch, raw_extractor  # noqa: E402
-from .field_path import FieldError, parse_field_path  # noqa: E402
+from ..streaming.sample_clock import ArrivalStamper  # noqa: E402
 from .inputs import _drained, _Input, built_reader  # noqa: E402
+from .message_types import raw_extractor  # noqa: E402
 from .parameters import REFERENCE, STREAMS, message_class  # noqa: E402
-from .sample_clock import ArrivalStamper  # noqa: E402
 
 
 class Ingest:

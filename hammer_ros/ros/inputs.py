@@ -23,8 +23,8 @@ from rclpy.exceptions import InvalidHandle  # noqa: E402
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy  # noqa: E402
 from rclpy.qos import QoSProfile  # noqa: E402
 
-from .cdr import TopicDecoder  # noqa: E402
-from .field_path import FieldPath, extract_samples, message_stamp  # noqa: E402
+from ..messages.cdr import TopicDecoder  # noqa: E402
+from ..messages.field_path import FieldPath, extract_samples, message_stamp  # noqa: E402
 
 ARRIVALS = 6  # arrival times of zero-stamped messages kept per stream to tell a sparse stream (``ingest``)
 

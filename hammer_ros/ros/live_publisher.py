@@ -9,7 +9,7 @@ prepare_ros_environment()
 import rclpy  # noqa: E402  (the environment must be prepared first)
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
-from .outputs import message_class, to_ros_message  # noqa: E402
+from .message_types import message_class, to_ros_message  # noqa: E402
 
 
 class LivePublisher:

@@ -9,9 +9,7 @@ each with the node parameters its section sets (``channel_values``).
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, fields, replace
-from importlib import import_module
 from typing import Any
 
 from .environment import prepare_ros_environment
@@ -25,16 +23,16 @@ from rclpy.validate_full_topic_name import validate_full_topic_name  # noqa: E40
 
 from ..errors import UsageError  # noqa: E402
 from ..identification.methods import METHODS, REFERENCE_METHODS  # noqa: E402
-from ..io.bags import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
+from ..io.bag_config import OTHER_KEYS, TOPIC_KEYS, Channel, config_channels  # noqa: E402
+from ..messages.field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, parse_field_path  # noqa: E402
+from ..messages.types import INPUT_PACKAGES as MESSAGE_PACKAGES  # noqa: E402
 from ..streaming.config import MAX_TAU_MAX, MAX_WINDOW, EngineConfig  # noqa: E402
-from .field_path import NAME_FIELD, FieldError, FieldPath, extract_samples, parse_field_path  # noqa: E402
+from .message_types import input_message_class as message_class  # noqa: E402
 
 NODE_NAME = "hammer_ros"
-MESSAGE_PACKAGES = ("std_msgs", "sensor_msgs", "geometry_msgs")
 STREAMS = ("excitation", "response")
 REFERENCE = "reference"  # the optional third input: a closed loop's reference (``reference_topic``)
 STREAMING_METHODS = tuple(m for m in METHODS if m != "semiparametric")
-_TYPE_NAME = re.compile(r"^([a-z][a-z0-9_]*)/(?:msg/)?([A-Z][A-Za-z0-9]*)$")
 
 
 @dataclass(frozen=True)
@@ -109,23 +107,6 @@ ENGINE_FIELDS = {f.name for f in fields(EngineConfig)} & set(PARAMETERS)
 STREAM_PARAMETERS = {f"{s}_{k}": s for s in STREAMS for k in ("topic", "type", "field")}
 DIAGNOSIS_TYPE = "std_msgs/msg/String"
 
-
-def message_class(type_name: str):
-    """The rclpy message class of 'pkg/msg/Name' (or 'pkg/Name') from an allowed package."""
-    match = _TYPE_NAME.match(type_name or "")
-    if not match:
-        raise UsageError(f"message type {type_name!r}: expected package/msg/Name, e.g. std_msgs/msg/Float64")
-    package, name = match.groups()
-    if package not in MESSAGE_PACKAGES:
-        raise UsageError(f"message type {type_name!r}: package {package!r} not supported "
-                         f"(use one of {', '.join(MESSAGE_PACKAGES)})")
-    try:
-        cls = getattr(import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        raise UsageError(f"message type {type_name!r}: no such message in {package}") from None
-    if not hasattr(cls, "get_fields_and_field_types"):
-        raise UsageError(f"message type {type_name!r}: not a message")
-    return cls
 
 
 def check_field(cls, path: FieldPath) -> None:
@@ -204,11 +185,6 @@ REPLAY_KEYS = {f.name for f in fields(EngineConfig)} | set(TOPIC_KEYS) | set(OTH
 SOURCE = "params file"
 NODE_WIDE = ("foxglove_port", "foxglove_host", "output_mcap")  # one for the node, never per channel
 
-
-def normal_type(name: str) -> str:
-    """'pkg/msg/Name' and 'pkg/Name' compare equal."""
-    parts = name.split("/")
-    return f"{parts[0]}/{parts[-1]}"
 
 
 def check_stream(stream: str, values: dict[str, Any], node_name: str, namespace: str) -> None:

@@ -438,7 +438,8 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
     wide = too_uncertain(result, cfg.max_relative_sd)
     if wide:
         return outcome(False, f"uncertain model: {wide}", status="uncertain")
-    doubt = untrusted(model_warnings(result, v, y, estimate.fit))
+    closed = snapshot.reference_window is not None  # the free-run fit on v is the noise fed back: no poor_fit
+    doubt = untrusted(w for w in model_warnings(result, v, y, estimate.fit) if not (closed and w.code == "poor_fit"))
     if doubt is not None:  # poor_fit, not_exciting: never published as a confident model
         return outcome(False, f"uncertain model: {doubt.code}: {doubt.message}", status="uncertain")
     return outcome(True, "", result, estimate.doc, markov=_markov(result, estimate.doc) if document else ())

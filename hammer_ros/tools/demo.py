@@ -18,10 +18,7 @@ the window. Stops both processes with SIGINT and waits for them.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -31,7 +28,9 @@ import numpy as np
 
 from ..errors import UsageError
 from ..identification.linear import root_rss_error
+from ..ros.demo_watcher import DemoWatcher
 from ..ros.environment import DomainLease, child_environment
+from .processes import start_ros_process, stop_process
 
 RATE = 500.0
 PLANT_PARAMETERS = {"rate": RATE, "nonlinearity": "dead_zone", "threshold": 0.2, "amplitude": 0.5, "noise": 0.002}
@@ -43,14 +42,6 @@ NODE_PARAMETERS = {"sample_rate": RATE, "method": "cls-markov", "order": 3, "del
 ROW_PERIOD = 2.0  # s between table rows
 CONVERGED_POLE_RSS = 0.02
 STOP_TIMEOUT = 5.0
-
-
-def ros_arguments(parameters: dict) -> list[str]:
-    """``--ros-args -p name:=value ...`` (floats keep their decimal point, so ROS types them double)."""
-    args = ["--ros-args"]
-    for name, value in parameters.items():
-        args += ["-p", f"{name}:={value!r}" if isinstance(value, float) else f"{name}:={value}"]
-    return args
 
 
 def _roots(pairs) -> np.ndarray:
@@ -102,70 +93,6 @@ def _number(x, width: int, digits: int) -> str:
     return f"{x:{width}.{digits}f}" if isinstance(x, (int, float)) else f"{'-':>{width}}"
 
 
-class _Watcher:
-    """The demo's own ROS node: latest truth, model and diagnostics."""
-
-    def __init__(self) -> None:
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.experimental import EventsExecutor
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-        from std_msgs.msg import String
-
-        self.rclpy = rclpy
-        rclpy.init()
-        self.node = rclpy.create_node("hammer_ros_demo")
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.truth: dict | None = None
-        self.model: dict | None = None
-        self.models = 0
-        self.status = "starting"
-        self.node.create_subscription(String, "/plant/truth", self._on_truth, latched)
-        self.node.create_subscription(String, "/hammer_ros/model", self._on_model, latched)
-        self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
-        self.executor = EventsExecutor()
-        self.executor.add_node(self.node)
-
-    def _on_truth(self, msg) -> None:
-        self.truth = json.loads(msg.data)
-
-    def _on_model(self, msg) -> None:
-        self.model = json.loads(msg.data)
-        self.models += 1
-
-    def _on_diagnostics(self, msg) -> None:
-        for status in msg.status:
-            if status.name.startswith("hammer_ros"):
-                self.status = status.message
-
-    def spin_until(self, deadline: float) -> None:
-        while self.rclpy.ok() and time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=max(0.0, min(0.1, deadline - time.monotonic())))
-
-    def close(self) -> None:
-        self.node.destroy_node()
-        self.rclpy.try_shutdown()
-
-
-def _start(module: str, parameters: dict, env: dict, log: Path) -> subprocess.Popen:
-    with open(log, "w") as out:
-        return subprocess.Popen([sys.executable, "-m", module, *ros_arguments(parameters)], env=env,
-                                stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
-
-
-def _stop(process: subprocess.Popen) -> int:
-    """SIGINT, then SIGTERM, then (last resort) SIGKILL; returns the exit code."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        if process.poll() is None:
-            process.send_signal(sig)
-            try:
-                return process.wait(timeout=STOP_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                continue
-    if process.poll() is None:
-        process.kill()
-    return process.wait()
 
 
 def _tail(log: Path, lines: int = 15) -> str:
@@ -173,7 +100,7 @@ def _tail(log: Path, lines: int = 15) -> str:
     return "\n".join("    " + line for line in text[-lines:])
 
 
-def _row(elapsed: float, watcher: _Watcher) -> str:
+def _row(elapsed: float, watcher: DemoWatcher) -> str:
     if watcher.model is None or watcher.truth is None:
         return f"{elapsed:7.1f}  {'-':>7}  {'-':>9}  {'-':>9}  {'-':>8}  {'-':>7}   {watcher.status}"
     c = compare(watcher.truth, watcher.model)
@@ -193,7 +120,7 @@ def _map_rows(truth: dict, estimate: dict) -> list[str]:
             for label, row in zip(("u", "F(u) true", "F(u) model"), maps)]
 
 
-def _summary(watcher: _Watcher) -> tuple[str, bool]:
+def _summary(watcher: DemoWatcher) -> tuple[str, bool]:
     truth, model = watcher.truth, watcher.model
     if truth is None or model is None:
         return "no model was identified (see the process logs above)", False
@@ -229,13 +156,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"hammer_ros demo: simulated plant (dead zone + resonant 3rd-order block, {RATE:g} Hz) and the "
               f"identification node on ROS_DOMAIN_ID {lease.domain_id} (loopback), {duration:g} s", flush=True)
         processes = {
-            "plant": _start("hammer_ros.ros.plant_node", PLANT_PARAMETERS, env, logs / "plant.log"),
-            "node": _start("hammer_ros.ros.node", NODE_PARAMETERS, env, logs / "node.log"),
+            "plant": start_ros_process("hammer_ros.ros.plant_node", PLANT_PARAMETERS, env, logs / "plant.log"),
+            "node": start_ros_process("hammer_ros.ros.node", NODE_PARAMETERS, env, logs / "node.log"),
         }
         watcher = None
         failed = False
         try:
-            watcher = _Watcher()
+            watcher = DemoWatcher()
             print(f"{'t [s]':>7}  {'samples':>7}  {'pole RSS':>9}  {'zero RSS':>9}  {'F err %':>8}  {'fit %':>7}",
                   flush=True)
             start = time.monotonic()
@@ -252,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             print("\ninterrupted", flush=True)
         finally:
-            codes = {name: _stop(p) for name, p in processes.items()}
+            codes = {name: stop_process(p, timeout=STOP_TIMEOUT) for name, p in processes.items()}
             if watcher is not None:
                 summary, _ = _summary(watcher)
                 print(summary, flush=True)

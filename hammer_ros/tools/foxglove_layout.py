@@ -4,7 +4,7 @@ file...*: ``python -m hammer_ros.tools.foxglove_layout [--config FILE] [--node N
 Without ``--config`` (or with a config of one channel) it is the shipped layout on
 ``/<node>/dashboard/...``; with a config of several ``channels`` (a node params file or a
 msg_config), one tab per channel on ``/<node>/<channel>/dashboard/...``: what the live node's
-Foxglove server serves and ``replay --dashboard-out`` records (``ros.dashboard.foxglove_layout``).
+Foxglove server serves and ``replay --dashboard-out`` records (``messages.dashboard.foxglove_layout``).
 A bad file or channel list exits 2 with one line naming it.
 """
 
@@ -15,8 +15,8 @@ import sys
 
 from ..cli.common import OneLineErrorParser
 from ..errors import UsageError
-from ..io.bags import config_channels, load_msg_config
-from ..ros.dashboard import SHIPPED_NODE, foxglove_layout
+from ..io.bag_config import config_channels, load_msg_config
+from ..messages.dashboard import SHIPPED_NODE, foxglove_layout
 
 
 def main(argv: list[str] | None = None) -> int:

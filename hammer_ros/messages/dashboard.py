@@ -24,7 +24,6 @@ from collections.abc import Sequence
 from importlib.resources import files
 from typing import Any
 
-from ..io.bags import JsonWriter, ResultWriter, node_topic
 from .outputs import checked_ns
 
 # JSON schema building blocks. Every key a channel's messages can carry is declared (test_dashboard
@@ -260,19 +259,3 @@ def dashboard_messages(messages: list[tuple[str, str, dict]], stamp_ns: int) -> 
         out.append(("diagnosis_log", {"timestamp": timestamp, "level": level, "message": line,
                                       "name": "hammer_ros.diagnosis", "file": "", "line": 0}))
     return out
-
-
-def record_results(writer: ResultWriter | None, messages: list[tuple[str, str, dict]], stamp_ns: int,
-                   node_name: str, *, dashboard_writer: JsonWriter | None = None,
-                   dashboard: list[tuple[str, dict]] | None = None) -> None:
-    """Write ``messages`` (as ROS 2 messages) into ``writer`` and their dashboard channels (as
-    JSON with their schemas; ``dashboard`` when already built) into ``dashboard_writer``, all at
-    log time ``stamp_ns``."""
-    stamp_ns = checked_ns(stamp_ns)
-    if writer is not None:
-        for topic, type_name, message in messages:
-            writer.write(node_topic(topic, node_name), type_name, message, stamp_ns)
-    if dashboard_writer is not None:
-        for channel, message in dashboard if dashboard is not None else dashboard_messages(messages, stamp_ns):
-            schema_name, schema = CHANNELS[channel]
-            dashboard_writer.write(dashboard_topic(channel, node_name), schema_name, schema, message, stamp_ns)

@@ -25,12 +25,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...identification.excitation import sine, uniform_white_noise
-from ...identification.linear import LinearModel
-from ...identification.piecewise_linear_ls import PllsEstimate, plls
-from ...identification.regression import build_regression, solve_least_squares
-from ...identification.result import rms_error
-from ...identification.simulate import add_noise, simulate_feedback, simulate_hammerstein
+from ..identification.excitation import sine, uniform_white_noise
+from ..identification.linear import LinearModel
+from ..identification.piecewise_linear_ls import PllsEstimate, plls
+from ..identification.regression import build_regression, solve_least_squares
+from ..identification.result import rms_error
+from ..identification.simulate import add_noise, simulate_feedback, simulate_hammerstein
 
 PAPER = "001 Van Pelt & Bernstein"
 SAMPLES = 1001  # k = 0, ..., l with l = 1000

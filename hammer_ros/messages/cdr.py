@@ -13,9 +13,10 @@ The layout comes either from an installed message class's introspection
 (``raw_extractor``, the node) or from the ``ros2msg`` schema text a bag stores beside its
 messages (``schema_extractor``, replay: the bag's own definition, whatever is installed; parsed
 by ``definition_fields``), as field name -> IDL type (``double``, ``sequence<double>``,
-``std_msgs/Header``) in both cases.
+``std_msgs/Header``) in both cases. No message package is imported here: ``nested`` (type name
+-> fields) is the caller's; ``hammer_ros.ros.message_types`` binds it to the installed packages.
 
-``raw_extractor(cls, path)`` returns ``extract(data) -> (values, stamp)`` with ``values`` the
+``raw_extractor(cls, path, nested)`` returns ``extract(data) -> (values, stamp)`` with ``values`` the
 samples of ``field_path.extract_samples`` (a float for one, else a float64 array) and ``stamp`` the
 header stamp in seconds (0.0 for none), or None when the path cannot be read this way
 (wide strings, a non-numeric target): the caller then subscribes to messages as usual.
@@ -24,13 +25,12 @@ NAME's index (``field_path`` semantics: MissingName when a message lacks it). A
 payload that is short or whose counts lie raises FieldError naming the field.
 ``extract_batch(extract, messages)`` reads the whole-array (or scalar) field of many messages
 without a header at once, when they share one layout (the node's ingest of a flush).
-``topic_decoder(cls, paths)`` reads one number per path (``data[2]``, ``position[elbow]``) from
+``topic_decoder(cls, paths, nested)`` reads one number per path (``data[2]``, ``position[elbow]``) from
 many messages at once, the layout walked once per distinct layout (a topic shared by channels).
 """
 
 from __future__ import annotations
 
-import importlib
 import re
 import struct
 from collections.abc import Callable
@@ -77,12 +77,6 @@ def _u32(data: bytes, pos: int, order: str, padding: list[tuple[int, int]] | Non
     """The uint32 at the next 4-aligned position and the position after it (``padding``: as ``_align``'s)."""
     start = _align(pos, 4, padding)
     return struct.unpack_from(order + "I", data, HEADER + start)[0], start + 4
-
-
-def installed_fields(type_name: str) -> dict[str, str]:
-    """The fields of an installed message type 'pkg/Name' (or 'pkg/msg/Name')."""
-    package, name = type_name.split("/")[0], type_name.split("/")[-1]
-    return getattr(importlib.import_module(f"{package}.msg"), name).get_fields_and_field_types()
 
 
 def definition_fields(text: str, package: str) -> dict[str, str]:
@@ -252,11 +246,12 @@ def _reader(type_name: str, indices: tuple[int | None, ...], path: FieldPath, ne
     return elements
 
 
-def raw_extractor(cls, path: FieldPath) -> Extract | None:
-    """``extract(data) -> (values, stamp)`` for serialized messages of ``cls`` (see the module
-    docstring), or None when ``path`` is not readable from raw CDR here."""
+def raw_extractor(cls, path: FieldPath, nested: Fields) -> Extract | None:
+    """``extract(data) -> (values, stamp)`` for serialized messages of ``cls`` (a message class
+    with ``get_fields_and_field_types``; ``nested`` gives the fields of its nested types, see the
+    module docstring), or None when ``path`` is not readable from raw CDR here."""
     try:
-        return _extractor(cls.get_fields_and_field_types(), path, installed_fields, whole=False)
+        return _extractor(cls.get_fields_and_field_types(), path, nested, whole=False)
     except (UnsupportedLayout, ImportError, AttributeError):
         return None
 
@@ -627,10 +622,11 @@ class TopicDecoder:
             stamps[rows] = column(HEADER, np.dtype(order + "i4")) + 1e-9 * column(HEADER + 4, np.dtype(order + "u4"))
 
 
-def topic_decoder(cls, paths: list[FieldPath]) -> TopicDecoder | None:
-    """A ``TopicDecoder`` of ``paths`` in serialized messages of ``cls``, or None when one of
-    them is not one number readable this way (the caller reads each message as before)."""
+def topic_decoder(cls, paths: list[FieldPath], nested: Fields) -> TopicDecoder | None:
+    """A ``TopicDecoder`` of ``paths`` in serialized messages of ``cls`` (``nested``: as for
+    ``raw_extractor``), or None when one of them is not one number readable this way (the caller
+    reads each message as before)."""
     try:
-        return TopicDecoder(cls.get_fields_and_field_types(), paths, installed_fields)
+        return TopicDecoder(cls.get_fields_and_field_types(), paths, nested)
     except (UnsupportedLayout, ImportError, AttributeError):
         return None

@@ -44,11 +44,11 @@ from functools import partial
 
 import numpy as np
 
-from ...identification.excitation import gaussian_white_noise, phase_modulated_chirp
-from ...identification.linear import LinearModel, match_roots, root_rss_error
-from ...identification.methods import IdentifyOptions, identify
-from ...identification.result import IdentificationResult
-from ...identification.simulate import add_noise, simulate_hammerstein
+from ..identification.excitation import gaussian_white_noise, phase_modulated_chirp
+from ..identification.linear import LinearModel, match_roots, root_rss_error
+from ..identification.methods import IdentifyOptions, identify
+from ..identification.result import IdentificationResult
+from ..identification.simulate import add_noise, simulate_hammerstein
 
 PAPER = "000 Lum & Bernstein"
 SAMPLES = 5001

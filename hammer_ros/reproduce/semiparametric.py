@@ -28,10 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import signal
 
-from ...identification.excitation import gaussian_white_noise, sine
-from ...identification.linear import LinearModel, root_rss_error
-from ...identification.semiparametric import SemiparametricEstimate, map_error, semiparametric
-from ...identification.simulate import add_noise, simulate_hammerstein
+from ..identification.excitation import gaussian_white_noise, sine
+from ..identification.linear import LinearModel, root_rss_error
+from ..identification.semiparametric import SemiparametricEstimate, map_error, semiparametric
+from ..identification.simulate import add_noise, simulate_hammerstein
 
 DEFAULT_RUNS = 10
 NOISE = 0.01

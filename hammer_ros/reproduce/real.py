@@ -63,12 +63,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from ...diagnosis.causes import MEANING
-from ...diagnosis.diagnose import DiagnosisRun, diagnose
-from ...diagnosis.split import Split, check_split, split_record
-from ...io.records import load_record
+from ..diagnosis.causes import MEANING
+from ..diagnosis.diagnose import DiagnosisRun, diagnose
+from ..diagnosis.split import Split, check_split, split_record
+from ..io.records import load_record
 
-DATA_DIR = Path(__file__).resolve().parents[2] / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"
 
 
 @dataclass(frozen=True)

@@ -12,18 +12,16 @@
 
 JointState is used for the vector topics because Foxglove and PlotJuggler plot each named
 entry of ``position`` as its own series. The dicts are what ``mcap_ros2`` writes directly;
-``to_ros_message`` turns one into an rclpy message object (byte fields become ``bytes``).
+``hammer_ros.ros.message_types.to_ros_message`` turns one into an rclpy message object (byte fields
+become ``bytes``).
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import numbers
 from typing import Any
-
-import numpy as np
 
 from ..identification.result import strict_json
 from ..streaming.config import EngineStats
@@ -132,7 +130,8 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
 
     Level OK after a successful solve, WARN while the window fills, the input is not
     persistently exciting or the published model is kept, ERROR when the method failed.
-    ``level`` is an int (what mcap_ros2 writes); ``to_ros_message`` converts it to the ``bytes`` rclpy expects."""
+    ``level`` is an int (what mcap_ros2 writes); ``ros.message_types.to_ros_message`` converts it to
+    the ``bytes`` rclpy expects."""
     values: dict[str, Any] = {
         "received_rate_excitation_hz": stats.rate("excitation"),
         "received_rate_response_hz": stats.rate("response"),
@@ -187,35 +186,6 @@ def diagnostics_message(stats: EngineStats, outcome: SolveOutcome | None, stamp_
     return {"header": _header(stamp_ns, ""), "status": [status]}
 
 
-def message_class(type_name: str):
-    """The rclpy message class of 'pkg/msg/Name' or 'pkg/Name' (imports the message package)."""
-    parts = type_name.split("/")
-    package, name = parts[0], parts[-1]
-    return getattr(importlib.import_module(f"{package}.msg"), name)
-
-
-_message_class = message_class  # the name node.py imported first
-
-
-def to_ros_message(type_name: str, values: dict):
-    """An rclpy message object of ``type_name`` filled from a nested dict of this module."""
-    return _fill(message_class(type_name)(), values)
-
-
-def _fill(msg, values: dict):
-    types = msg.get_fields_and_field_types()
-    for key, value in values.items():
-        field_type = types[key]
-        if isinstance(value, dict):
-            _fill(getattr(msg, key), value)
-        elif isinstance(value, list) and value and isinstance(value[0], dict):
-            element = field_type[field_type.index("<") + 1 : field_type.rindex(">")]
-            cls = message_class(element)
-            setattr(msg, key, [_fill(cls(), v) for v in value])
-        elif field_type in ("byte", "octet"):  # rclpy names the byte type "octet"
-            setattr(msg, key, bytes([int(value)]))
-        elif field_type in ("float", "double") or field_type.startswith(("sequence<double", "sequence<float")):
-            setattr(msg, key, np.asarray(value, dtype=float).tolist() if isinstance(value, list) else float(value))
-        else:
-            setattr(msg, key, value)
-    return msg
+def node_topic(topic: str, node_name: str = "hammer_ros") -> str:
+    """'~/model' -> '/hammer_ros/model' (the private namespace of the node)."""
+    return f"/{node_name}/{topic[2:]}" if topic.startswith("~/") else topic

@@ -26,11 +26,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...identification.billings_fakhouri import FeedforwardFit, identify_feedforward
-from ...identification.excitation import gaussian_white_noise
-from ...identification.linear import LinearModel
-from ...identification.simulate import simulate_parallel
-from ...identification.static_maps import PolynomialMap
+from ..identification.billings_fakhouri import FeedforwardFit, identify_feedforward
+from ..identification.excitation import gaussian_white_noise
+from ..identification.linear import LinearModel
+from ..identification.simulate import simulate_parallel
+from ..identification.static_maps import PolynomialMap
 
 PAPER = "003 Billings & Fakhouri"
 TABLE = "Table 1 (feedforward system, 10 000 samples)"
