@@ -41,12 +41,13 @@ from ..messages.outputs import (  # noqa: E402
     diagnostics_message,
     model_json,
 )
+from ..messages.types import normal_type  # noqa: E402
 from ..streaming.config import EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
 from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
 from .ingest import Ingest  # noqa: E402
 from .message_types import to_ros_message  # noqa: E402
-from .parameters import ENGINE_FIELDS, REFERENCE, STREAM_PARAMETERS, STREAMS, engine_config, normal_type  # noqa: E402
+from .parameters import ENGINE_FIELDS, REFERENCE, STREAM_PARAMETERS, STREAMS, engine_config  # noqa: E402
 
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
 WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``start``)

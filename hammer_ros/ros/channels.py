@@ -32,11 +32,12 @@ prepare_ros_environment()
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from ..messages.outputs import OUTPUT_TOPICS  # noqa: E402
+from ..messages.types import normal_type  # noqa: E402
 from .channel import IdentificationChannel, Recorder  # noqa: E402
 from .inputs import SharedTopic, _fanout_callback, _Input, _queueing_callback, built_reader  # noqa: E402
 from .message_types import message_class as output_message_class  # noqa: E402
 from .message_types import topic_decoder  # noqa: E402
-from .parameters import NODE_WIDE, REFERENCE, STREAMS, coerce, normal_type  # noqa: E402
+from .parameters import NODE_WIDE, REFERENCE, STREAMS, coerce  # noqa: E402
 
 if TYPE_CHECKING:
     from .foxglove_server import DashboardServer

@@ -31,8 +31,9 @@ from ..streaming.config import HOLD_PERIODS  # noqa: E402
 from ..streaming.engine import StreamingEngine  # noqa: E402
 from ..streaming.sample_clock import ArrivalStamper  # noqa: E402
 from .inputs import _drained, _Input, built_reader  # noqa: E402
+from .message_types import input_message_class as message_class  # noqa: E402
 from .message_types import raw_extractor  # noqa: E402
-from .parameters import REFERENCE, STREAMS, message_class  # noqa: E402
+from .parameters import REFERENCE, STREAMS  # noqa: E402
 
 
 class Ingest:
