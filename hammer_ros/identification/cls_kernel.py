@@ -1,3 +1,4 @@
+# One module: numba's cache (cache=True) checks only the caller's file, so cls_solve's callees stay beside it.
 """The CLS solve of paper 000 (sec. 3.1) from the correlation functions, with its confidence
 bounds, as one numba kernel (``cls_solve``): the same arithmetic as the numpy reference
 (``correlation_least_squares.correlation_least_squares_steps`` for the estimate,
