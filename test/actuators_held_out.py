@@ -9,7 +9,7 @@ and ending anywhere (``actuators.servo_runs_record``), diagnoses them given as r
 and fits the yardstick (``fit_physical_servo``, every run simulated from its own measured start) on
 the same data. ``--concatenated``: the same records without their run boundaries (one record each;
 the yardstick simulated from the record's first sample), for contrast. Prints one line per
-configuration and the counts. Not a test: the numbers are quoted in docs/diagnosis.md."""
+configuration and the counts. Not a test: the numbers are quoted in docs/notes/diagnosis-measurements.md."""
 
 from __future__ import annotations
 

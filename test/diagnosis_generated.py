@@ -1,11 +1,11 @@
-"""The generated suite of docs/diagnosis.md: every cause on seeds FIRST..LAST (4000 samples,
+"""The generated suite of docs/notes/diagnosis-measurements.md: every cause on seeds FIRST..LAST (4000 samples,
 70/30 split, the nominal order), diagnosed in two processes.
 
     python test/diagnosis_generated.py FIRST_SEED LAST_SEED
 
 prints one line per miss, the count named right per cause and the median / largest time per
 record. Not a test (the suite's test runs seeds 0-5: test_diagnosis.py); its numbers are quoted in
-docs/diagnosis.md."""
+docs/notes/diagnosis-measurements.md."""
 
 from __future__ import annotations
 

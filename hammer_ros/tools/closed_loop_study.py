@@ -1,4 +1,4 @@
-"""The closed-loop measurement of docs/methods.md: pole RSS of cls-markov and plls-hammerstein
+"""The closed-loop measurement of docs/notes/methods-measurements.md: pole RSS of cls-markov and plls-hammerstein
 with and without the reference as instrument (and refined), and the ``closed_loop`` verdict,
 on random closed-loop records and on the same plants in open loop
 (``identification.closed_loop.random_loop_pair``).
