@@ -11,8 +11,12 @@ exits: the live test's publisher process."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import signal as signals
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy import signal
@@ -86,6 +90,38 @@ def write_bag(path, seconds: float = 40.0, silence: tuple[float, float] | None =
             if silence is None or not silence[0] <= k / rate < silence[0] + silence[1]:
                 writer.write(joints, t + 500_000, joint_state(float(y), t))
     return state
+
+
+@contextlib.contextmanager
+def played_into_node(bag, node_parameters: str, ros_env: dict, tmp_path, rate: float = 2.0):
+    """``hammer_ros.ros.node`` started from a params file (CONFIG and ``node_parameters``), the bag's
+    two topics played into it at ``rate`` x by a player process (``play``); yields (the node, a
+    listener, the ~/model documents, the /diagnostics values) and stops both processes after."""
+    from ros_helpers import Listener, RosProcess
+
+    params = tmp_path / "params.yaml"
+    params.write_text(CONFIG + node_parameters)
+    env = {**ros_env, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), ros_env.get("PYTHONPATH", "")])}
+    node = RosProcess("hammer_ros.ros.node", {}, env, tmp_path / "node.log",
+                      options=("--ros-args", "--params-file", str(params)))
+    listener = Listener(env)
+    player = None
+    try:
+        models = listener.subscribe_json("/hammer_ros/model")
+        diagnostics = listener.subscribe_diagnostics()
+        player = RosProcess("held_setpoint", {}, env, tmp_path / "player.log", options=(str(bag), str(rate)))
+        yield node, listener, models, diagnostics
+    finally:
+        listener.close()
+        if player is not None:
+            player.stop(signals.SIGINT)
+        assert node.stop(signals.SIGINT) == 0, node.output()[-3000:]
+
+
+def model_on(listener, models: list, samples: int = 500) -> dict:
+    """The first ~/model that is not stale and holds at least ``samples`` samples in its window."""
+    return listener.wait_for(lambda: next((m for m in models if m["samples"] >= samples and not m.get("stale")),
+                                          None), timeout=90.0, what=f"a model on >= {samples} samples")
 
 
 def play(bag: str, rate: float) -> None:

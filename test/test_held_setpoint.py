@@ -6,16 +6,13 @@ cutting the record at every setpoint; a silence of the state splits a bag into r
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from held_setpoint import CONFIG, STATE_RATE, pole, servo, write_bag
-from ros_helpers import Listener, RosProcess
+from held_setpoint import CONFIG, STATE_RATE, model_on, played_into_node, pole, servo, write_bag
 
 from hammer_ros.io.bags import load_bag_record
 from hammer_ros.streaming.config import EngineConfig
@@ -98,28 +95,13 @@ def test_the_node_identifies_the_recording_played_live_at_twice_its_speed(bags, 
     zeros on /setpoint) at 2x into the node (50 Hz grid, window 1000, plls-hammerstein): the
     setpoint is placed at its arrival on the state's time base and held, and ~/model comes with
     more than 500 samples in its window."""
-    params = tmp_path / "params.yaml"
-    params.write_text(CONFIG + "    sample_rate: 50.0\n    window: 1000\n    method: plls-hammerstein\n"
-                      "    solve_rate: 2.0\n    diagnosis_period: 0.0\n")
-    env = {**ros_env, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), ros_env.get("PYTHONPATH", "")])}
-    node = RosProcess("hammer_ros.ros.node", {}, env, tmp_path / "node.log",
-                      options=("--ros-args", "--params-file", str(params)))
-    listener = Listener(env)
-    player = None
-    try:
-        models = listener.subscribe_json("/hammer_ros/model")
-        diagnostics = listener.subscribe_diagnostics()
-        player = RosProcess("held_setpoint", {}, env, tmp_path / "player.log", options=(str(bags / "servo"), "2"))
-        model = listener.wait_for(lambda: next((m for m in models if m["samples"] >= 500 and not m.get("stale")),
-                                               None), timeout=90.0, what="a model on >= 500 samples")
+    with played_into_node(bags / "servo", "    sample_rate: 50.0\n    window: 1000\n    method: plls-hammerstein\n"
+                          "    solve_rate: 2.0\n    diagnosis_period: 0.0\n", ros_env, tmp_path) as live:
+        node, listener, models, diagnostics = live
+        model = model_on(listener, models)
         poles = np.array([complex(re, im) for re, im in model["poles"]])
         assert model["method"] == "plls-hammerstein" and np.abs(poles - pole(50.0)).min() < 0.01, model
         status = listener.wait_for(lambda: diagnostics and diagnostics[-1], what="diagnostics")
         assert int(status["excitation_zero_stamps"]) > 0 and int(status["response_zero_stamps"]) == 0
         assert int(status["gaps"]) == 0 and status["excitation_held"] == "True", status
         assert "header.stamp is zero" in node.output()
-    finally:
-        listener.close()
-        if player is not None:
-            player.stop(signal.SIGINT)
-        assert node.stop(signal.SIGINT) == 0, node.output()[-3000:]

@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 import pytest
-from held_setpoint import CONFIG, pole, write_bag
+from held_setpoint import CONFIG, model_on, played_into_node, pole, write_bag
 from scipy import optimize, signal
 from test_bag_formats import make_humble
 
@@ -79,33 +79,12 @@ def test_the_node_identifies_the_humble_step_played_live_at_twice_its_speed(humb
     ``hammer-ros node`` (a params file naming them, 50 Hz grid, window 1000, plls-hammerstein,
     order 2): ``~/model`` arrives with at least 500 samples in its window, with no gap, the set
     point held, the 25 Hz state interpolated onto the grid, and the servo's slowest pole."""
-    import os
-    import signal as signals
-    from pathlib import Path
-
-    from ros_helpers import Listener, RosProcess
-
     root, _ = humble
-    params = tmp_path / "params.yaml"
-    params.write_text(CONFIG + "    sample_rate: 50.0\n    window: 1000\n    method: plls-hammerstein\n"
-                      "    order: 2\n    solve_rate: 2.0\n    diagnosis_period: 0.0\n")
-    env = {**ros_env, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), ros_env.get("PYTHONPATH", "")])}
-    node = RosProcess("hammer_ros.ros.node", {}, env, tmp_path / "node.log",
-                      options=("--ros-args", "--params-file", str(params)))
-    listener = Listener(env)
-    player = None
-    try:
-        models = listener.subscribe_json("/hammer_ros/model")
-        diagnostics = listener.subscribe_diagnostics()
-        player = RosProcess("held_setpoint", {}, env, tmp_path / "player.log", options=(str(root / "humble"), "2"))
-        model = listener.wait_for(lambda: next((m for m in models if m["samples"] >= 500 and not m.get("stale")),
-                                               None), timeout=90.0, what="a model on >= 500 samples")
+    with played_into_node(root / "humble", "    sample_rate: 50.0\n    window: 1000\n    method: plls-hammerstein\n"
+                          "    order: 2\n    solve_rate: 2.0\n    diagnosis_period: 0.0\n", ros_env, tmp_path) as live:
+        _, listener, models, diagnostics = live
+        model = model_on(listener, models)
         slowest = max(abs(complex(re, im)) for re, im in model["poles"])  # plls without --refine: biased a little
         assert slowest < 1.0 and abs(slowest - abs(pole(50.0))) < 0.08, model
         status = listener.wait_for(lambda: diagnostics and diagnostics[-1], what="diagnostics")
         assert int(status["gaps"]) == 0 and status["excitation_held"] == "True", status
-    finally:
-        listener.close()
-        if player is not None:
-            player.stop(signals.SIGINT)
-        assert node.stop(signals.SIGINT) == 0, node.output()[-3000:]
