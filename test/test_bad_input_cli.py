@@ -11,6 +11,7 @@ import shutil
 import struct
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -222,6 +223,29 @@ def test_a_rosbag2_directory_without_metadata_is_read_with_a_warning(capsys, tmp
     (tmp_path / "empty").mkdir()
     assert_usage_error(capsys, ["identify", tmp_path / "empty", *spec[:4]],
                        "not a rosbag2 directory (no metadata.yaml and no .mcap or .db3 files)")
+
+
+def test_each_read_of_a_process_warns_for_itself(capsys, tmp_path):
+    """The warnings belong to the read that finds them (no state shared between the reads of one process):
+    ``hammer_ros.read`` twice in one process warns twice; one read that takes the bag twice (its reference)
+    warns once; two reads in two threads at once warn once each."""
+    import hammer_ros
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for file in JOINT_BAG.glob("*.mcap"):
+        shutil.copy(file, bare)
+    note = f"hammer-ros: warning: {bare}: no metadata.yaml; reading its 1 bag file(s) in name order"
+    spec = {"input": "/cmd:data", "output": "/joint_states:velocity[0]"}
+    for _ in range(2):
+        hammer_ros.read(bare, **spec)
+        assert warnings(capsys.readouterr().err) == [note]
+    hammer_ros.read(bare, **spec, reference="/cmd:data")
+    assert warnings(capsys.readouterr().err) == [note]
+    with ThreadPoolExecutor(2) as pool:
+        records = list(pool.map(lambda _: hammer_ros.read(bare, **spec), range(2)))
+    assert warnings(capsys.readouterr().err) == [note, note]
+    np.testing.assert_array_equal(records[0].y, records[1].y)
 
 
 def test_unknown_schemas_in_a_bag_are_skipped_unless_asked_for(capsys, tmp_path):

@@ -162,7 +162,8 @@ def test_the_bag_schema_gives_the_layout_of_the_installed_types():
 
 
 def test_a_schema_definition_in_msg_form():
-    from hammer_ros.messages.cdr import definition_fields, schema_extractor
+    from hammer_ros.messages.cdr import schema_extractor
+    from hammer_ros.messages.types import definition_fields
 
     text = ("# comment\nuint8 OK=0\nstring NAME = \"a=b\"\nHeader header\nfloat64[] a  # trailing\n"
             "float32[<=3] b\nint16[4] c\nstring<=8 d\ngeometry_msgs/Vector3 e\nPoint f\nbool g true\n")

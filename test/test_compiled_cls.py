@@ -3,6 +3,9 @@ estimates and confidence bounds equal to 1e-9 relative, for ARX and mu-Markov, o
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -120,3 +123,26 @@ def test_where_the_reference_decides_the_compiled_solve_steps_aside():
     assert compiled_steps(phi_vv, phi_yv, v, y, 4, 0, 2, 3) is None  # mu 2: a 1 x 1 Hankel matrix for order 4
     assert compiled_steps(phi_vv, phi_yv, v, y, order, delay, 30, 0) is None
     assert compiled_steps(phi_vv, phi_yv, v, y, order, delay, 30, 3) is not None
+
+
+def test_the_kernel_records_the_digest_of_its_callees():
+    """numba's cache checks only ``cls_kernel.py``'s source: a change to the callees' modules must change
+    its ``CALLEE_DIGEST`` (until then ``cls_solve`` compiles without the cache)."""
+    from hammer_ros.identification import cls_kernel
+
+    assert cls_kernel.callee_digest() == cls_kernel.CALLEE_DIGEST, (
+        f"write CALLEE_DIGEST = {cls_kernel.callee_digest()!r} in hammer_ros/identification/cls_kernel.py")
+
+
+def test_a_second_process_loads_the_solve_from_the_cache(compiled_solve):
+    """After this session compiled it (``compiled_solve``), another process takes ``cls_solve`` from numba's
+    cache instead of compiling it."""
+    script = ("import numpy as np\n"
+              "from hammer_ros.identification.correlation_least_squares import compiled_steps, correlation_functions\n"
+              "from hammer_ros.identification.cls_kernel import cls_solve\n"
+              "v = np.random.default_rng(0).standard_normal(600)\n"
+              "y = np.convolve(v, [0.0, 1.0, 0.5])[: v.size]\n"
+              "compiled_steps(*correlation_functions(v, y, 66), v, y, 3, 1, 30, 3)\n"
+              "print(sum(cls_solve.stats.cache_hits.values()), sum(cls_solve.stats.cache_misses.values()))\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, check=True)
+    assert done.stdout.split() == ["1", "0"], done.stdout + done.stderr

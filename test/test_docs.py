@@ -1,5 +1,6 @@
 """The documentation stays true to the repository: README.md and docs/*.md link only to files
-that exist, and docs/node.md names every parameter the node declares."""
+that exist, and docs/node.md names every parameter the node declares; the pages stay short
+(README <= 13 KB, each page of docs/ <= 25 KB) and each page of docs/ opens with a working example."""
 
 from __future__ import annotations
 
@@ -48,6 +49,16 @@ def test_the_pages_exist():
     names = {p.name for p in DOCS}
     assert {"README.md", "methods.md", "node.md", "replay.md", "diagnosis.md", "robustness.md",
             "benchmark.md"} <= names
+
+
+def test_the_pages_are_short_and_open_with_an_example():
+    """README.md <= 13 000 bytes, each page directly in docs/ <= 25 000 and a code block (its example)
+    within its first 25 lines (the README opens with its quick-start table)."""
+    sizes = {p.name: p.stat().st_size for p in DOCS}
+    assert sizes["README.md"] <= 13_000, sizes
+    assert all(size <= 25_000 for size in sizes.values()), sizes
+    late = [p.name for p in DOCS[1:] if not any(FENCE.match(line) for line in p.read_text().splitlines()[:25])]
+    assert not late, f"no example in the first 25 lines: {late}"
 
 
 def test_link_extraction_sees_code_links_and_skips_code_blocks():

@@ -28,10 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from ..fleet.table import read_rows, write_parquet
     from ..identification.methods import REFERENCE_METHODS
     from ..io.bag_config import config_channels, engine_config_from_params, load_msg_config, stream_spec, stream_specs
-    from ..io.bag_index import forget_warnings
     from .replay import SignalStop, channel_runs, replay_settings
 
-    forget_warnings()
     if args.scheduler and args.workers is not None:
         raise UsageError("--scheduler and --workers: give one (--workers starts a local cluster)")
     if args.workers is not None and args.workers < 1:

@@ -42,7 +42,7 @@ from ..io.bag_config import (
     stream_spec,
     stream_specs,
 )
-from ..io.bag_index import bag_duration, bag_message_counts, forget_warnings
+from ..io.bag_index import WarningLog, bag_duration, bag_message_counts
 from ..io.bag_writer import check_output_path
 from ..io.replay import NODE_NAME, SOLVE_BATCH, ChannelReplay, check_replay_input, replay_bag, replay_channels
 from ..streaming.config import CLS_STRUCTURES, EngineConfig
@@ -153,7 +153,6 @@ class SignalStop:
 
 
 def run(args: argparse.Namespace) -> int:
-    forget_warnings()
     params = load_msg_config(args.config) if args.config else {}
     source = str(args.config or "config")
     channels = config_channels(params, source)
@@ -201,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
                 solver.close()
         finally:
             stop.__exit__()
-    result.read.report(args.bag)
+    WarningLog().warn(*result.read.warnings(args.bag))
     files = ", ".join(str(Path(p)) for p in (args.out, args.dashboard_out) if p)
     if stop.signal is not None:
         name = signal.Signals(stop.signal).name
@@ -262,7 +261,7 @@ def run_channels(args: argparse.Namespace, channels: list[Channel], params: dict
                                   progress=progress.update, dashboard_out=args.dashboard_out, diagnose=args.diagnose)
     finally:
         progress.close()
-    next(iter(results.values())).read.report(args.bag)
+    WarningLog().warn(*next(iter(results.values())).read.warnings(args.bag))  # the channels share one read
     docs = {name: result.document() for name, result in results.items()}
     wall = max(result.wall_s for result in results.values())
     doc = {"channels": docs, "samples": sum(d["samples"] for d in docs.values()),

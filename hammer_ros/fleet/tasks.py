@@ -17,7 +17,6 @@ import numpy as np
 
 from ..errors import HammerRosError
 from ..io.bag_config import StreamSpec
-from ..io.bag_index import forget_warnings
 from ..io.replay import ChannelReplay, check_replay_input, replay_bag, replay_channels
 from ..streaming.config import EngineConfig
 from .sources import BagSource
@@ -60,7 +59,6 @@ def run_bag(settings: FleetSettings, source: BagSource) -> dict[str, Any]:
     document (``model``), the diagnosis, the results MCAP, ``error`` and the task's seconds."""
     started = time.perf_counter()
     row = empty_row(source)
-    forget_warnings()
     try:
         out = _results_path(settings, source)
         check_replay_input(source.path, settings.excitation, settings.response, out, reference=settings.reference)
@@ -87,7 +85,6 @@ def run_channels_bag(settings: FleetSettings, source: BagSource) -> list[dict[st
     are shared out evenly between the rows (their sum is the task's time)."""
     started = time.perf_counter()
     rows = [{**empty_row(source), "channel": c.name} for c in settings.channels]
-    forget_warnings()
     try:
         out = _results_path(settings, source)
         for c in settings.channels:

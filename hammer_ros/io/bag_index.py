@@ -3,8 +3,9 @@ file or a rosbag2 directory, ``rosbag2``), each file's schemas, channels and mes
 (``file_index``: from the MCAP summary, else from a sequential, fault-tolerant scan of its
 records, ``RecordScan``: a truncated or corrupt recording gives every valid record, and
 ``damage`` says where it broke), the bag's topics, counts and duration, what reading skipped
-(``BagReadStats``) and the ``hammer-ros: warning:`` lines (``warn``: each distinct text once per
-command; ``forget_warnings`` starts a command).
+(``BagReadStats``) and the ``hammer-ros: warning:`` lines of a command (``WarningLog``: each
+distinct text once; the command that reads owns it, so two commands, threads or ``hammer_ros.read``
+calls in one process share none).
 """
 
 from __future__ import annotations
@@ -20,31 +21,33 @@ from typing import Any
 
 from ..errors import UsageError
 from ..messages.types import message_definition
-from .rosbag2 import BagLayout, read_layout, readable_file, storage_of
+from .rosbag2 import read_layout, readable_file, storage_of
 from .rosbag2_sqlite import sqlite_index
 
 MAX_RECORD_BYTES = 256 * 2**20  # an MCAP record (chunk) claiming more is treated as damage, never allocated
 MAX_MESSAGE_BYTES = 16 * 2**20  # a message larger than this (2 M float64 samples) is skipped and counted
 FIELD_CHECK_MESSAGES = 100  # a field path must work in one of the first messages of its topic
-_warned: set[str] = set()
 
 
-def warn(text: str) -> None:
-    """One ``hammer-ros: warning:`` line on stderr (each distinct text once per command:
-    ``forget_warnings`` starts a command)."""
-    if text not in _warned:
-        _warned.add(text)
-        print(f"hammer-ros: warning: {text}", file=sys.stderr)
+class WarningLog:
+    """The ``hammer-ros: warning:`` lines of one command on stderr, each distinct text once (a command
+    may read a bag more than once: its reference, a bag's several channels)."""
 
+    def __init__(self) -> None:
+        self.printed: set[str] = set()
 
-def forget_warnings() -> None:
-    _warned.clear()
+    def warn(self, *texts: str) -> None:
+        for text in texts:
+            if text not in self.printed:
+                self.printed.add(text)
+                print(f"hammer-ros: warning: {text}", file=sys.stderr)
 
 
 @dataclass
 class BagReadStats:
     """What reading a bag skipped; nothing is dropped silently (``warnings`` says what and why)."""
 
+    layout_notes: list[str] = field(default_factory=list)  # how the bag's files were found (``BagLayout.note``)
     damage: list[str] = field(default_factory=list)  # where a file is truncated or corrupt
     oversized: int = 0  # messages larger than MAX_MESSAGE_BYTES
     undecodable: int = 0  # messages whose CDR bytes do not decode with their schema
@@ -56,7 +59,7 @@ class BagReadStats:
         self.first_error.setdefault(key, reason)
 
     def warnings(self, path: str | Path) -> list[str]:
-        lines = list(self.damage)
+        lines = [*self.layout_notes, *self.damage]
         if self.oversized:
             lines.append(f"{path}: {self.oversized} message(s) over {MAX_MESSAGE_BYTES // 2**20} MiB skipped "
                          f"({self.first_error['oversized']})")
@@ -69,22 +72,10 @@ class BagReadStats:
                      for topic, n in self.zero_stamps.items())
         return lines
 
-    def report(self, path: str | Path) -> None:
-        for line in self.warnings(path):
-            warn(line)
-
-
-def bag_layout(path: str | Path) -> BagLayout:
-    """The files of a bag and their compression (``rosbag2.read_layout``), its note warned."""
-    layout = read_layout(path)
-    if layout.note:
-        warn(layout.note)
-    return layout
-
 
 def bag_files(path: str | Path) -> list[Path]:
     """The files of a bag in reading order: a .mcap/.db3 file, or a rosbag2 directory's."""
-    return list(bag_layout(path).files)
+    return list(read_layout(path).files)
 
 
 class RecordScan:

@@ -43,16 +43,15 @@ from .bag_index import (
     BagReadStats,
     FileIndex,
     RecordScan,
+    WarningLog,
     bag_files,
-    bag_layout,
     bag_message_counts,
     bag_topics,
     error_reason,
     file_index,
-    forget_warnings,
 )
 from .records import Record
-from .rosbag2 import decompress_message, readable_file, storage_of
+from .rosbag2 import decompress_message, read_layout, readable_file, storage_of
 from .rosbag2_sqlite import SqliteScan
 
 FLUSH_SAMPLES = 20_000  # buffered samples per vectorised engine update
@@ -151,7 +150,9 @@ def _bag_records(path: str | Path, topics: list[str], stats: BagReadStats, decod
     from mcap.records import Channel, Message, Schema
 
     wanted = set(topics)
-    layout = bag_layout(path)
+    layout = read_layout(path)
+    if layout.note and layout.note not in stats.layout_notes:
+        stats.layout_notes.append(layout.note)
 
     def one_file(file: Path):
         decoders = _Decoders(file_index(file))
@@ -356,8 +357,8 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     ``reference_spec`` (``--reference /topic:field``, else the config's ``reference_topic`` and
     ``reference_field``; a closed loop's reference): aligned with
     the excitation the same way, then read at the record's sample times (linear interpolation;
-    on the common grid these are its own samples)."""
-    forget_warnings()
+    on the common grid these are its own samples). Warnings: each distinct one once per call, on stderr."""
+    log = WarningLog()
     params = load_msg_config(config) if config else {}
     params = single_channel_params(params, str(config), "identify and diagnose read one pair (--input/--output, "
                                    "or replay for every channel)")
@@ -365,20 +366,20 @@ def load_bag_record(path: str | Path, input_spec: str | None = None, output_spec
     excitation, response = stream_specs(input_spec, output_spec, params, str(config or "config"))
     reference = stream_spec("--reference", "reference", reference_spec, params, str(config or "config"),
                             required=False)
-    t, v, y, runs = _aligned_samples(path, excitation, response, engine_config)
+    t, v, y, runs = _aligned_samples(path, excitation, response, engine_config, log)
     if reference is None:
         return Record(v, y, t, str(path), runs=runs)
     try:
-        t_r, _, r, _ = _aligned_samples(path, excitation, reference, engine_config)
+        t_r, _, r, _ = _aligned_samples(path, excitation, reference, engine_config, log)
     except UsageError as exc:
         raise UsageError(f"--reference: {exc}") from None
     return Record(v, y, t, str(path), np.interp(t, t_r, r), runs)
 
 
-def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec,
-                     engine_config: EngineConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, Runs | None]:
+def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamSpec, engine_config: EngineConfig,
+                     log: WarningLog) -> tuple[np.ndarray, np.ndarray, np.ndarray, Runs | None]:
     """(t, v, y, runs): every aligned sample of the two streams and its gap-free segments as
-    runs (None: one segment) (``load_bag_record``)."""
+    runs (None: one segment) (``load_bag_record``); what reading skipped warned in ``log``."""
     check_topics(path, (excitation, response))
     check_fields(path, (excitation, response))
     chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
@@ -395,7 +396,7 @@ def _aligned_samples(path: str | Path, excitation: StreamSpec, response: StreamS
                 raise UsageError(f"{path}: more than {MAX_RECORD_SAMPLES:,} aligned samples, too many to identify "
                                  "in one batch; use `hammer-ros replay` (a sliding window) or cut the bag")
     aligner.flush()
-    read.report(path)
+    log.warn(*read.warnings(path))
     if not chunks:
         raise UsageError(f"{path}: no aligned samples of {excitation} and {response} "
                          f"({stats.received_excitation} and {stats.received_response} received)")

@@ -27,15 +27,13 @@ from .bag_index import (
     MAX_RECORD_BYTES,
     BagReadStats,
     FileIndex,
+    WarningLog,
     bag_duration,
     bag_files,
-    bag_layout,
     bag_message_counts,
     bag_topics,
     chunk_records,
     file_index,
-    forget_warnings,
-    warn,
 )
 from .bag_reader import (
     FLUSH_SAMPLES,
@@ -54,10 +52,10 @@ from .bag_writer import JsonWriter, ResultWriter, check_output_path, record_resu
 __all__ = [
     "FIELD_CHECK_MESSAGES", "FLUSH_SAMPLES", "MAX_MESSAGE_BYTES", "MAX_RECORD_BYTES", "MAX_RECORD_SAMPLES",
     "OTHER_KEYS", "SCHEMA_DIR", "SCHEMA_SEPARATOR", "TOPIC_KEYS", "BagReadStats", "BagSample", "Channel",
-    "FileIndex", "JsonWriter", "ResultWriter", "StreamSpec", "bag_duration", "bag_files", "bag_layout",
+    "FileIndex", "JsonWriter", "ResultWriter", "StreamSpec", "WarningLog", "bag_duration", "bag_files",
     "bag_message_counts", "bag_topics", "check_fields", "check_output_path", "check_topics", "chunk_records",
-    "config_channels", "engine_config_from_params", "file_index", "forget_warnings", "header_stamp_ns",
+    "config_channels", "engine_config_from_params", "file_index", "header_stamp_ns",
     "iter_bag_messages", "iter_bag_samples", "iter_role_samples", "load_bag_record", "load_msg_config",
     "message_definition", "node_topic", "parse_stream_spec", "record_results", "single_channel_params",
-    "stream_spec", "stream_specs", "warn",
+    "stream_spec", "stream_specs",
 ]

@@ -12,7 +12,7 @@ count then their elements, nested messages inline, fixed arrays without a count.
 The layout comes either from an installed message class's introspection
 (``raw_extractor``, the node) or from the ``ros2msg`` schema text a bag stores beside its
 messages (``schema_extractor``, replay: the bag's own definition, whatever is installed; parsed
-by ``definition_fields``), as field name -> IDL type (``double``, ``sequence<double>``,
+by ``types.schema_fields``), as field name -> IDL type (``double``, ``sequence<double>``,
 ``std_msgs/Header``) in both cases. No message package is imported here: ``nested`` (type name
 -> fields) is the caller's; ``hammer_ros.ros.message_types`` binds it to the installed packages.
 
@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from .field_path import NAME_FIELD, FieldError, FieldPath, named_index
+from .types import ARRAY_TYPE, SEQUENCE_TYPE, UnsupportedLayout, schema_fields
 
 PRIMITIVES = {  # IDL type -> (struct code, size)
     "double": ("d", 8), "float": ("f", 4), "int64": ("q", 8), "uint64": ("Q", 8), "int32": ("i", 4),
@@ -47,21 +48,11 @@ PRIMITIVES = {  # IDL type -> (struct code, size)
     "char": ("B", 1), "octet": ("B", 1), "byte": ("B", 1), "boolean": ("?", 1),
 }
 HEADER = 4  # encapsulation header: 0x00, 0x01 (little endian) or 0x00 (big endian), options
-_SEQUENCE = re.compile(r"^sequence<([^,>]+)(?:,\s*\d+)?>$")
-_ARRAY = re.compile(r"^(.+)\[(\d+)\]$")
 _BOUNDED_STRING = re.compile(r"^string<\d+>$")
 
 Skip = Callable[[bytes, int, str], int]  # (data, position after the header, byte order) -> position
 Fields = Callable[[str], dict[str, str]]  # a nested type 'pkg/Name' -> its field names and IDL types
 Extract = Callable[[bytes], tuple[float | np.ndarray, float]]  # serialized message -> (values, stamp)
-MSG_TO_IDL = {"float64": "double", "float32": "float", "bool": "boolean", "byte": "octet", "char": "uint8",
-              **{t: t for t in ("int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64",
-                                "string", "wstring")}}
-_MSG_FIELD = re.compile(r"^([A-Za-z0-9_/]+)(?:<=(\d+))?(?:\[(<=)?(\d*)\])?$")
-
-
-class UnsupportedLayout(Exception):
-    """The field cannot be read from raw CDR here (the caller falls back to messages)."""
 
 
 def _align(pos: int, size: int, padding: list[tuple[int, int]] | None = None) -> int:
@@ -79,71 +70,15 @@ def _u32(data: bytes, pos: int, order: str, padding: list[tuple[int, int]] | Non
     return struct.unpack_from(order + "I", data, HEADER + start)[0], start + 4
 
 
-def definition_fields(text: str, package: str) -> dict[str, str]:
-    """Field name -> IDL type of one ``.msg`` definition (the form of
-    ``get_fields_and_field_types``): ``float64[]`` -> ``sequence<double>``, ``float64[<=3]`` ->
-    ``sequence<double, 3>``, ``float64[9]`` -> ``double[9]``, ``string<=8`` -> ``string<8>``,
-    ``Header`` -> ``std_msgs/Header``, a bare ``Name`` -> ``package/Name``; constants
-    (``uint8 OK=0``) are left out. Raises UnsupportedLayout on a line it cannot read."""
-    fields = {}
-    for line in text.splitlines():
-        tokens = line.split("#", 1)[0].split(None, 1)
-        if not tokens:
-            continue
-        rest = tokens[1].strip() if len(tokens) > 1 else ""
-        name = re.match(r"^([A-Za-z_][A-Za-z0-9_]*)\s*(=)?", rest)
-        match = _MSG_FIELD.match(tokens[0])
-        if name is None or match is None:
-            raise UnsupportedLayout(line.strip())
-        if name.group(2):  # a constant
-            continue
-        base, bound, upper, size = match.groups()
-        if base in MSG_TO_IDL:
-            idl = MSG_TO_IDL[base] + (f"<{bound}>" if bound else "")
-        elif base == "Header":
-            idl = "std_msgs/Header"
-        else:
-            pkg, _, msg = base.rpartition("/")
-            idl = f"{pkg.split('/')[0] if pkg else package}/{msg}"
-        if match.group(0).endswith("]"):
-            idl = f"{idl}[{size}]" if size and not upper else f"sequence<{idl}{', ' + size if upper else ''}>"
-        fields[name.group(1)] = idl
-    return fields
-
-
-def schema_fields(name: str, text: str) -> dict[str, dict[str, str]]:
-    """'pkg/Name' -> fields (``definition_fields``) of every type in a ``ros2msg`` schema: the
-    named type's definition, then each nested type's after a line of '=' and ``MSG: pkg/Name``."""
-    sections = re.split(r"^=+\s*$", text, flags=re.MULTILINE)
-    types = {}
-    for i, section in enumerate(sections):
-        if i == 0:
-            type_name, body = name, section
-        else:
-            header = re.match(r"\s*MSG:\s*(\S+)\s*\n?", section)
-            if header is None:
-                raise UnsupportedLayout(f"schema {name}: a section without 'MSG: pkg/Name'")
-            type_name, body = header.group(1), section[header.end():]
-        parts = type_name.split("/")
-        types[f"{parts[0]}/{parts[-1]}"] = definition_fields(body, parts[0])
-    return types
-
-
-def element_type(type_name: str) -> str:
-    """The element type of an IDL type: ``sequence<T>``, ``sequence<T, N>`` and ``T[N]`` -> T."""
-    match = _SEQUENCE.match(type_name) or _ARRAY.match(type_name)
-    return match.group(1).strip() if match else type_name
-
-
 def _kind(type_name: str, nested: Fields) -> tuple[str, Any, int | None]:
     """('primitive', code-size, count) / ('string', None, count) / ('message', fields, count);
     count None for one value, -1 for a sequence, k for a fixed array."""
     count: int | None = None
-    match = _SEQUENCE.match(type_name)
+    match = SEQUENCE_TYPE.match(type_name)
     if match:
         type_name, count = match.group(1).strip(), -1
     else:
-        match = _ARRAY.match(type_name)
+        match = ARRAY_TYPE.match(type_name)
         if match:
             type_name, count = match.group(1), int(match.group(2))
     if type_name in PRIMITIVES:
