@@ -279,7 +279,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
                                120)
             peak = process_status_kib("VmHWM", ident.pid)
             workers = 0
-            for child in child_pids(ident.pid):  # its solver and diagnosis processes (and multiprocessing's tracker)
+            for child in child_pids(ident.pid):  # its solver and diagnosis processes
                 try:
                     workers += process_status_kib("VmHWM", child)
                 except (RuntimeError, OSError):  # gone meanwhile
