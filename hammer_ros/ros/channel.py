@@ -243,16 +243,24 @@ class IdentificationChannel:
 
     def _diagnosis_loop(self, stop: threading.Event) -> None:
         """Every ``diagnosis_period`` s: ``diagnose_record`` on the newest ``diagnosis_window``
-        samples of the raw window (estimation on their first 70 %, validation on the rest),
-        published as JSON on ~/diagnosis. The period is read every 0.5 s, so a live change
-        applies at once."""
+        samples of the raw window (estimation on their first 70 %, validation on the rest; none
+        while the window is empty), published as JSON on ~/diagnosis. The period is read every
+        0.5 s, so a live change applies at once."""
         last = time.monotonic()
         while not stop.wait(0.5):
             period = self.values["diagnosis_period"]
             if period > 0 and time.monotonic() - last >= period:
                 last = time.monotonic()
                 with self._diagnose_lock:
-                    self._guarded(self._diagnose_once, "diagnosing")
+                    self._guarded(self._diagnose_samples, "diagnosing")
+
+    def _diagnose_samples(self) -> None:
+        """The periodic diagnosis, of a window that has samples (an idle node diagnoses nothing, so
+        it never starts its diagnosis process)."""
+        with self._lock:
+            snapshot = self.engine.snapshot()
+        if snapshot.v.size:
+            self._diagnose_once(snapshot)
 
     def _diagnose_once(self, snapshot: EngineSnapshot | None = None) -> dict[str, Any]:
         """Diagnose the newest ``diagnosis_window`` samples of the window (of ``snapshot``, else of
