@@ -105,7 +105,7 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
                              "every 2 s of its newest `diagnosis_window` = 10,000 samples) after startup, and its "
                              "VmHWM once 1.2 W samples of G1 / tanh data (Float64MultiArray of 1000 samples, 200 "
                              "messages/s per topic) filled the window and it solved twice and diagnosed once more; its "
-                             "worker processes (the solver, the diagnosis, multiprocessing's resource tracker): the "
+                             "worker processes (the solver, the diagnosis): the "
                              "sum of their VmHWM at that point (each counts the shared library pages it maps, so the "
                              "sum overstates what they add)")
         section.notes.append("idle node of J channels: a fresh `hammer-ros node` of J JointState channels (one "
