@@ -34,3 +34,25 @@ def process_cpu_seconds(pid: int) -> float | None:
     except (OSError, IndexError):
         return None
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime (proc(5) fields 14, 15)
+
+
+def process_tree(pid: int) -> list[int]:
+    """``pid`` and all its descendants (children, their children, ...), parents first (Linux)."""
+    tree, index = [pid], 0
+    while index < len(tree):
+        try:
+            tree += child_pids(tree[index])
+        except OSError:  # gone meanwhile
+            pass
+        index += 1
+    return tree
+
+
+def process_pss_kib(pid: int | str = "self") -> int:
+    """The proportional set size (kiB) of a process (/proc/<pid>/smaps_rollup): its resident pages,
+    each shared page counted as its share among the processes mapping it, so that a sum over
+    processes counts a shared library once."""
+    for line in Path(f"/proc/{pid}/smaps_rollup").read_text().splitlines():
+        if line.startswith("Pss:"):
+            return int(line.split()[1])
+    raise RuntimeError(f"/proc/{pid}/smaps_rollup has no Pss")

@@ -47,6 +47,45 @@ def test_a_sequence_of_solves_equals_the_in_process_one(solver):
     assert here.stats.solves == there.stats.solves > 10
 
 
+def test_channels_sharing_one_worker_get_their_in_process_outcomes(solver):
+    """Three engines (a node's channels), each solved from its own thread in one worker (its
+    ``lane``), step by step in turn: every outcome is that engine's in-process one. Their inputs
+    fade to 2 % after 5000 samples, so the later windows are refused as not exciting relative to
+    the model published before: the worker keeps each lane's published model and window apart."""
+    import threading
+
+    from hammer_ros.identification.simulate import simulate_hammerstein
+    from hammer_ros.tools.bench.common import F2, G1
+
+    records = []
+    for seed in (11, 12, 13):
+        v, _ = hammerstein_record(9_000, seed=seed)
+        v[5000:] *= 0.02
+        records.append((v, simulate_hammerstein(v, F2, G1)))
+    turns = threading.Barrier(3, timeout=60)
+    mismatches: list[str] = []
+    statuses: list[set[str]] = [set(), set(), set()]
+
+    def channel(lane: int) -> None:
+        v, y = records[lane]
+        for here, there in _fed_in_parts(np.arange(v.size) / 1000.0, v, y, 300):
+            turns.wait()  # every lane solves each step before any solves the next
+            local, remote = here.solve(), solver.solve(there.snapshot(), lane)
+            there.record(remote)
+            statuses[lane].add(local.status)
+            if (remote.status, remote.reason, remote.doc, remote.markov) != (local.status, local.reason, local.doc,
+                                                                              local.markov):
+                mismatches.append(f"lane {lane} at {here.stats.aligned}: {remote.reason} vs {local.reason}")
+
+    threads = [threading.Thread(target=channel, args=(lane,)) for lane in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not any(thread.is_alive() for thread in threads)
+    assert mismatches == [] and all({"ok", "not_exciting"} <= found for found in statuses), (mismatches, statuses)
+
+
 def _fed_in_parts(t: np.ndarray, v: np.ndarray, y: np.ndarray, size: int):
     """Two engines fed the record in parts of ``size`` samples: yields (here, there) after each part."""
     here, there = StreamingEngine(CONFIG), StreamingEngine(CONFIG)

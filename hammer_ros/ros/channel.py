@@ -8,9 +8,10 @@ input topics (public rclpy API). Threads and locks: ``node_core``'s module docst
 A thin adapter over ``streaming.StreamingEngine``: the ingest thread moves the queued samples
 into the engine every ``FLUSH_PERIOD`` s, the solver thread solves on a snapshot of the window
 ``solve_rate`` times a second and publishes the results built by ``outputs``. The solve runs in
-a ``SolverProcess`` (parameter ``solver_process``, on by default), and so does the periodic
-diagnosis (a second one, started by the first diagnosis), so neither holds the interpreter lock
-against the callbacks and the ingest thread. A slow solve skips solves, never samples; a solve
+the node's solver process (``workers.NodeWorkers``, one for every channel; parameter
+``solver_process``, on by default), and so does the periodic diagnosis (in the node's diagnosis
+process, started by the first diagnosis), so neither holds the interpreter lock against the
+callbacks and the ingest thread. A slow solve skips solves, never samples; a solve
 without a new model republishes the last good one marked stale.
 """
 
@@ -44,13 +45,13 @@ from ..messages.outputs import (  # noqa: E402
 from ..messages.types import normal_type  # noqa: E402
 from ..streaming.config import EngineConfig  # noqa: E402
 from ..streaming.engine import EngineSnapshot, SolveOutcome, StreamingEngine, solve_snapshot, window_problem  # noqa: E402
-from ..streaming.solver_process import SolverProcess, diagnose_window, newest_window  # noqa: E402
+from ..streaming.solver_process import diagnose_window, newest_window  # noqa: E402
 from .ingest import Ingest  # noqa: E402
 from .message_types import to_ros_message  # noqa: E402
 from .parameters import ENGINE_FIELDS, REFERENCE, STREAM_PARAMETERS, STREAMS, engine_config  # noqa: E402
+from .workers import NodeWorkers  # noqa: E402
 
 FLUSH_PERIOD = 0.05  # s between moves of the queued samples into the engine
-WORKER_READY_SECONDS = 10.0  # longest wait for the solver process before subscribing (``start``)
 
 
 class ErrorCount:
@@ -100,11 +101,12 @@ class IdentificationChannel:
     """One channel of the node. ``values``: its coerced parameter values; ``node``: the rclpy
     node (logger, clock, graph); ``outputs``: topic -> publisher (``~/model``, ..., /diagnostics);
     ``server``: where its dashboard channels go (or None); ``status_name``: its /diagnostics
-    status name and the node part of its recorded topics. ``configure`` has checked ``values``."""
+    status name and the node part of its recorded topics; ``workers``: the node's worker
+    processes (its solves there as lane ``name``). ``configure`` has checked ``values``."""
 
     def __init__(self, name: str, values: dict[str, Any], node, logger, outputs: dict[str, Any], server,
-                 recorder: Recorder, errors: ErrorCount, status_name: str) -> None:
-        self.name, self.values, self.node, self.logger = name, values, node, logger
+                 recorder: Recorder, errors: ErrorCount, status_name: str, workers: NodeWorkers) -> None:
+        self.name, self.values, self.node, self.logger, self.workers = name, values, node, logger, workers
         self._outputs, self.server, self.recorder, self.errors = outputs, server, recorder, errors
         self.status_name = status_name
         self._lock = threading.Lock()  # guards the engine and the ingest (stamper, queues into the engine)
@@ -116,10 +118,6 @@ class IdentificationChannel:
         self.active = False
         self.ingest = Ingest(values, logger)
         self.engine = self._new_engine(engine_config(values))
-        self.solver: SolverProcess | None = SolverProcess() if values["solver_process"] else None
-        self.solver_lost = ""  # why the solver process is gone, when it went
-        self.diagnoser: SolverProcess | None = None  # the diagnoses' process, started by the first diagnosis
-        self.diagnoser_lost = ""  # why it is gone, when it went
         self.last_outcome: SolveOutcome | None = None
         self.skipped_solves = 0
         self.closed_loop: bool | None = None  # the last diagnosis's ``closed_loop`` verdict (None: none yet)
@@ -136,15 +134,6 @@ class IdentificationChannel:
     def _now(self) -> int:
         """The node clock in integer nanoseconds (the stamp of what the node publishes)."""
         return self.node.get_clock().now().nanoseconds
-
-    def wait_ready(self) -> None:
-        """Wait for the solver process (at most WORKER_READY_SECONDS): its start, about 0.7 s of CPU
-        for imports, would otherwise compete with the first second of ingestion (2-core bench VM,
-        a fresh node fed 20 000 - 32 000 100-sample messages/s per topic for 3 s as soon as it
-        reported its subscriptions: lossy in 10 of 18 runs without the wait, 4 of 18 with it)."""
-        if self.solver is not None and not self.solver.wait_ready(WORKER_READY_SECONDS):
-            self.logger.warning(f"the solver process is not ready after {WORKER_READY_SECONDS:g} s; "
-                                "subscribing anyway (solves wait for it)")
 
     def start(self) -> None:
         """Start the ingest, solve and diagnosis threads (the node subscribes the inputs)."""
@@ -168,13 +157,6 @@ class IdentificationChannel:
             diagnostics = diagnostics_message(stats, self.last_outcome, self._now(), self.status_name)
             self._add_node_diagnostics(diagnostics["status"][0])
             self._outputs["/diagnostics"].publish(to_ros_message("diagnostic_msgs/msg/DiagnosticArray", diagnostics))
-
-    def release(self) -> None:
-        """Stop the worker processes (the node destroys the publishers)."""
-        for worker in (self.solver, self.diagnoser):
-            if worker is not None:
-                worker.close()
-        self.solver = self.diagnoser = None
 
     def apply(self, values: dict[str, Any], config: EngineConfig, changed: set[str]) -> set[str]:
         """Take checked parameter ``values`` live (``wake`` solves with them); a changed topic,
@@ -247,44 +229,38 @@ class IdentificationChannel:
 
     def _diagnosis(self, v: np.ndarray, y: np.ndarray, reference: np.ndarray | None) -> dict[str, Any]:
         """``diagnose_window`` (instrumented by ``reference`` when the node has one over the window)
-        in the diagnosis process (with ``solver_process``; started by the first diagnosis, so a node
-        that never diagnoses never pays for it), or here when there is none (or it is gone). Called
-        under ``_diagnose_lock``."""
-        order = self.values["order"]
-        if self.values["solver_process"] and not self.diagnoser_lost:
-            try:
-                if self.diagnoser is None:
-                    self.diagnoser = SolverProcess(role="diagnosis")
-                return self.diagnoser.diagnose(v, y, order, reference)
-            except RuntimeError as exc:
-                self.logger.error(f"diagnosis process lost ({exc}); diagnosing in the node's thread from now on")
-                self.diagnoser.close()
-                self.diagnoser, self.diagnoser_lost = None, str(exc)
-        return diagnose_window(v, y, order, reference)
+        in the node's diagnosis process (with ``solver_process``), else here. Called under
+        ``_diagnose_lock``."""
+        if self.values["solver_process"]:
+            return self.workers.diagnose(v, y, self.values["order"], reference, self.logger)
+        return diagnose_window(v, y, self.values["order"], reference)
 
     def _solve(self, snapshot: EngineSnapshot) -> SolveOutcome:
-        """``solve_snapshot`` in the solver process, or here when there is none (or it is gone)."""
-        if self.solver is not None:
-            try:
-                return self.solver.solve(snapshot)
-            except RuntimeError as exc:
-                self.logger.error(f"solver process lost ({exc}); solving in the node's thread from now on")
-                self.solver.close()
-                self.solver, self.solver_lost = None, str(exc)
+        """``solve_snapshot`` in the node's solver process (with ``solver_process``), else here."""
+        if self.values["solver_process"]:
+            return self.workers.solve(snapshot, self.name, self.logger)
         return solve_snapshot(snapshot)
 
     def _diagnosis_loop(self, stop: threading.Event) -> None:
         """Every ``diagnosis_period`` s: ``diagnose_record`` on the newest ``diagnosis_window``
-        samples of the raw window (estimation on their first 70 %, validation on the rest),
-        published as JSON on ~/diagnosis. The period is read every 0.5 s, so a live change
-        applies at once."""
+        samples of the raw window (estimation on their first 70 %, validation on the rest; none
+        while the window is empty), published as JSON on ~/diagnosis. The period is read every
+        0.5 s, so a live change applies at once."""
         last = time.monotonic()
         while not stop.wait(0.5):
             period = self.values["diagnosis_period"]
             if period > 0 and time.monotonic() - last >= period:
                 last = time.monotonic()
                 with self._diagnose_lock:
-                    self._guarded(self._diagnose_once, "diagnosing")
+                    self._guarded(self._diagnose_samples, "diagnosing")
+
+    def _diagnose_samples(self) -> None:
+        """The periodic diagnosis, of a window that has samples (an idle node diagnoses nothing, so
+        it never starts its diagnosis process)."""
+        with self._lock:
+            snapshot = self.engine.snapshot()
+        if snapshot.v.size:
+            self._diagnose_once(snapshot)
 
     def _diagnose_once(self, snapshot: EngineSnapshot | None = None) -> dict[str, Any]:
         """Diagnose the newest ``diagnosis_window`` samples of the window (of ``snapshot``, else of
@@ -374,11 +350,8 @@ class IdentificationChannel:
             "response_publishers": self.ingest.inputs["response"].publishers(),
             "loop_errors": self.errors.count,
             "cpu_percent": self._cpu_percent(),
-            "solver": (f"process {self.solver.pid}" if self.solver is not None
-                       else "thread" + (f" ({self.solver_lost})" if self.solver_lost else "")),
-            "diagnosis": (f"process {self.diagnoser.pid}" if self.diagnoser is not None
-                          else f"thread ({self.diagnoser_lost})" if self.diagnoser_lost
-                          else "process, from the first diagnosis" if self.values["solver_process"] else "thread"),
+            "solver": self.workers.solver_state() if self.values["solver_process"] else "thread",
+            "diagnosis": self.workers.diagnosis_state() if self.values["solver_process"] else "thread",
             "window": self.values["window"],
             "method": self.values["method"],
         }

@@ -38,6 +38,7 @@ from .inputs import SharedTopic, _fanout_callback, _Input, _queueing_callback, b
 from .message_types import message_class as output_message_class  # noqa: E402
 from .message_types import topic_decoder  # noqa: E402
 from .parameters import NODE_WIDE, REFERENCE, STREAMS, coerce  # noqa: E402
+from .workers import NodeWorkers  # noqa: E402
 
 if TYPE_CHECKING:
     from .foxglove_server import DashboardServer
@@ -105,7 +106,9 @@ class ChannelSet:
         self.merger = DiagnosticsMerger(host.create_output(output_message_class("diagnostic_msgs/msg/DiagnosticArray"),
                                                            "/diagnostics", 10), list(values))
         self.recorder = Recorder("")
+        self.workers = NodeWorkers(False)
         try:
+            self.workers = NodeWorkers(any(v["solver_process"] for v in values.values()))
             wide = {name: coerce(name, node_wide[name]) for name in NODE_WIDE}
             if wide["foxglove_port"]:
                 from .foxglove_server import DashboardServer  # the SDK only when asked for
@@ -149,7 +152,7 @@ class ChannelSet:
             status = f"{self.node.get_name()}/{name}" if name else self.node.get_name()
             server = None if self.server is None else _ServerPort(self.server, name)
             return IdentificationChannel(name, values, self.node, logger, outputs, server, self.recorder,
-                                         self.host.errors, status)
+                                         self.host.errors, status, self.workers)
         except BaseException:
             for topic, publisher in outputs.items():
                 if topic != "/diagnostics":
@@ -158,8 +161,7 @@ class ChannelSet:
 
     def activate(self) -> None:
         """Start every channel, then subscribe each topic once for all the inputs reading it."""
-        for channel in self.channels:
-            channel.wait_ready()
+        self.workers.wait_ready(self.node.get_logger())
         for channel in self.channels:
             channel.start()
         self._subscribe()
@@ -214,8 +216,8 @@ class ChannelSet:
         if self.server is not None:
             self.server.stop()
             self.server = None
+        self.workers.close()
         for channel in self.channels:
-            channel.release()
             for topic, publisher in channel._outputs.items():
                 if topic != "/diagnostics":
                     self.host.destroy_output(publisher)

@@ -16,6 +16,11 @@ Threads, locks and who owns which state:
   queues into the engine); ``_solve_lock`` makes one solve at a time (solver thread, ``~/solve``),
   ``_diagnose_lock`` one diagnosis (diagnosis thread, ``~/diagnose``). A ``SharedTopic``'s lock
   keeps its decoded chunks in message order.
+- Processes (``workers.NodeWorkers``, one per ``ChannelSet``): ONE solver process for the solves
+  of every channel (each channel a lane of it), ONE diagnosis process for their diagnoses, started
+  by the first; the channels' threads take turns in each (``SolverProcess``'s lock around a solve
+  or a diagnosis), ``NodeWorkers``' lock guards starting and losing them. A node of any number of
+  channels is at most 3 processes.
 - The services thread (``services.NodeServices``) answers ``~/reset``, ``~/solve``,
   ``~/diagnose``; the Foxglove server's threads call the same handlers and the parameter API.
 - Parameters are changed from the executor thread (rclpy's parameter services) or the Foxglove

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from ..process_status import child_pids, process_cpu_seconds, process_status_kib
+from ..process_status import child_pids, process_cpu_seconds, process_pss_kib, process_status_kib, process_tree
 from .environment import DomainLease, child_environment, prepare_ros_environment
 from .rate_probe_publisher import (
     JOINT_TOPIC,
@@ -279,7 +279,7 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
                                120)
             peak = process_status_kib("VmHWM", ident.pid)
             workers = 0
-            for child in child_pids(ident.pid):  # its solver and diagnosis processes (and multiprocessing's tracker)
+            for child in child_pids(ident.pid):  # its solver and diagnosis processes
                 try:
                     workers += process_status_kib("VmHWM", child)
                 except (RuntimeError, OSError):  # gone meanwhile
@@ -299,16 +299,77 @@ def node_memory(window: int, batch: int = 1000, rate: float = 200.0) -> dict:
             "diagnosis_samples": diagnoses[-1] if diagnoses else 0}
 
 
-def joint_state_params(path, joints: int, rate: float, topic: str = JOINT_TOPIC) -> None:
+def joint_state_params(path, joints: int, rate: float, topic: str = JOINT_TOPIC,
+                       diagnosis_period: float = 30.0) -> None:
     """A node params file of ``joints`` channels joint_0.. over ``topic`` (u = position[joint_k],
-    y = velocity[joint_k])."""
+    y = velocity[joint_k]), each diagnosing every ``diagnosis_period`` s."""
     lines = ["hammer_ros:", "  ros__parameters:", f"    excitation_topic: {topic}",
              "    excitation_type: sensor_msgs/msg/JointState", f"    response_topic: {topic}",
              "    response_type: sensor_msgs/msg/JointState", f"    sample_rate: {float(rate)}", "    solve_rate: 4.0",
-             "    window: 4000", f"    channels: [{', '.join(f'joint_{k}' for k in range(joints))}]"]
+             "    window: 4000",
+             f"    diagnosis_period: {float(diagnosis_period)}",
+             f"    channels: [{', '.join(f'joint_{k}' for k in range(joints))}]"]
     lines += [f'    joint_{k}: {{excitation_field: "position[joint_{k}]", response_field: "velocity[joint_{k}]"}}'
               for k in range(joints)]
     path.write_text("\n".join(lines) + "\n")
+
+
+def joints_node_memory(joints: int, settle: float = 3.0, diagnosis_period: float = 30.0,
+                       pythonpath: str | None = None) -> dict:
+    """A fresh node of ``joints`` JointState channels (``joint_state_params``; no publisher: idle):
+    ``start_seconds`` from its launch until /diagnostics carries every channel's status, then,
+    ``settle`` s later, its processes (the node and every process it started, ``process_tree``)
+    with the sum of their resident (VmRSS) and proportional (Pss: shared pages counted once)
+    sizes. ``pythonpath``: the node's PYTHONPATH (another checkout's code, side by side)."""
+    import tempfile
+    from pathlib import Path
+
+    prepare_ros_environment()
+    with DomainLease() as lease, tempfile.TemporaryDirectory() as tmp:
+        env = child_environment(lease.domain_id)
+        if pythonpath is not None:
+            env["PYTHONPATH"] = pythonpath
+        os.environ.update({k: env[k] for k in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTRTPS_DEFAULT_PROFILES_FILE")})
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.experimental import EventsExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        context = rclpy.Context()
+        rclpy.init(context=context, domain_id=lease.domain_id, signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node("memory_probe", context=context)
+        executor = EventsExecutor(context=context)
+        executor.add_node(node)
+        names: set[str] = set()
+        node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: names.update(s.name for s in m.status), 10)
+        params = Path(tmp) / "joints.yaml"
+        joint_state_params(params, joints, 1000.0, diagnosis_period=diagnosis_period)
+        started = time.monotonic()
+        ident = subprocess.Popen([sys.executable, "-m", "hammer_ros.ros.node", "--ros-args", "--params-file",
+                                  str(params)], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            if not spin_until(executor, lambda: len(names) >= joints or ident.poll() is not None, 120):
+                raise RuntimeError(f"the node published no /diagnostics of its {joints} channels in 120 s")
+            if ident.poll() is not None:
+                raise RuntimeError(f"the node exited {ident.returncode}: {ident.stderr.read()[-300:]}")
+            start_seconds = time.monotonic() - started
+            spin_until(executor, lambda: False, settle)
+            processes = []
+            for pid in process_tree(ident.pid):
+                try:
+                    processes.append({"pid": pid, "name": Path(f"/proc/{pid}/comm").read_text().strip(),
+                                      "rss_kib": process_status_kib("VmRSS", pid), "pss_kib": process_pss_kib(pid)})
+                except (RuntimeError, OSError):  # gone meanwhile
+                    continue
+        finally:
+            ident.terminate()
+            ident.communicate(timeout=30)
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown(context=context)
+    return {"joints": joints, "start_seconds": start_seconds, "processes": len(processes),
+            "rss_kib": sum(p["rss_kib"] for p in processes), "pss_kib": sum(p["pss_kib"] for p in processes),
+            "each": processes}
 
 
 def joints_node(session: ProbeContext, rate: float, seconds: float, joints: int) -> dict:

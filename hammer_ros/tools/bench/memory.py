@@ -47,15 +47,20 @@ def memory_child(window: int, method: str = "cls-markov") -> dict:
             "reason": outcome.reason}
 
 
+JOINT_CHANNELS = (1, 6)  # the idle node rows: a node of that many JointState channels
+
+
 def memory_section(windows: Sequence[int], node: bool = True) -> Section:
     """Per W: the engine alone in a fresh process (``memory_child``) and, with ``node``, a fresh
-    ``hammer-ros node`` fed over DDS (``ros_rate_probe.node_memory``)."""
+    ``hammer-ros node`` fed over DDS (``ros_rate_probe.node_memory``); with ``node``, also a fresh
+    idle node of 1 and of 6 JointState channels (``rate_probe_node.joints_node_memory``)."""
     section = Section("memory", "6. Peak memory of the engine and of the node (fresh processes; cls-markov, "
                       "mu 30, tau_max 66)", [
         ("case", "W"), ("ingest", "engine ingest peak MiB"), ("solve", "engine solve peak MiB"),
         ("reference", "raw window (v, y float64) MiB"), ("ratio", "engine ingest / raw window"),
         ("solve_seconds", "engine solve s"), ("node_idle", "node idle RSS MiB"), ("node_peak", "node peak RSS MiB"),
-        ("node_added", "node peak - idle MiB"), ("workers_peak", "node's worker processes: peak RSS MiB (sum)")])
+        ("node_added", "node peak - idle MiB"), ("workers_peak", "node's worker processes: peak RSS MiB (sum)"),
+        ("processes", "node processes"), ("idle_pss", "node idle PSS MiB (sum)"), ("start", "node start s")])
     node_memory = None
     if node:
         try:
@@ -91,6 +96,8 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
                 if not row["node_complete"]:
                     row["node_added"] = f"{row['node_added']:.3g} (window not filled and solved)"
         section.rows.append(row)
+    if node_memory is not None:
+        section.rows += [_idle_node_row(joints) for joints in JOINT_CHANNELS]
     section.notes.append("engine: MiB above the process's resident size after the imports (VmHWM - VmRSS), while "
                          "it ingests 2 W samples and over one solve of the full window")
     if node_memory is not None:
@@ -98,9 +105,28 @@ def memory_section(windows: Sequence[int], node: bool = True) -> Section:
                              "every 2 s of its newest `diagnosis_window` = 10,000 samples) after startup, and its "
                              "VmHWM once 1.2 W samples of G1 / tanh data (Float64MultiArray of 1000 samples, 200 "
                              "messages/s per topic) filled the window and it solved twice and diagnosed once more; its "
-                             "worker processes (the solver, the diagnosis, multiprocessing's resource tracker): the "
+                             "worker processes (the solver, the diagnosis): the "
                              "sum of their VmHWM at that point (each counts the shared library pages it maps, so the "
                              "sum overstates what they add)")
+        section.notes.append("idle node of J channels: a fresh `hammer-ros node` of J JointState channels (one "
+                             "topic, window 4000, cls-markov, 4 solves/s), no publisher: start = its launch until "
+                             "/diagnostics has every channel's status; 3 s later the node and every process it "
+                             "started (count), their VmRSS summed (node idle) and their Pss (shared pages counted "
+                             "once) summed")
     return section
+
+
+def _idle_node_row(joints: int) -> dict:
+    """The idle node row of ``joints`` JointState channels (``joints_node_memory``)."""
+    from ...ros.rate_probe_node import joints_node_memory
+
+    case = f"node, {joints} JointState channel{'s' if joints > 1 else ''}, idle"
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            idle = joints_node_memory(joints)
+    except (RuntimeError, OSError, subprocess.SubprocessError) as exc:
+        return {"case": case, "joints": joints, "node_idle": f"failed: {exc}"}
+    return {"case": case, "joints": joints, "node_idle": idle["rss_kib"] / 1024, "idle_pss": idle["pss_kib"] / 1024,
+            "processes": idle["processes"], "start": idle["start_seconds"]}
 
 
