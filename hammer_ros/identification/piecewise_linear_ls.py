@@ -401,7 +401,7 @@ def compiled_plls(u: np.ndarray, y: np.ndarray, partition: np.ndarray, primary: 
     arrays = [np.ascontiguousarray(x, dtype=float) for x in (u, y, partition)]
     try:
         status, a, b, mu, kappa, instrumented, bounds_status, poles_std, zeros_std, map_covariance = plls_solve(
-            *arrays, int(primary), int(order), int(delay), bool(uncertainty))
+            *arrays, int(primary), int(order), int(delay), INSTRUMENT_PASSES, bool(uncertainty))
     except (np.linalg.LinAlgError, ValueError, ZeroDivisionError):
         return None
     if status != OK:

@@ -26,7 +26,6 @@ import numpy as np
 from .cls_bounds_kernel import FALLBACK, OK, _matched, _root_std
 from .cls_kernel import CALLEE_DIGEST, callee_digest
 from .cls_numerics import all_finite, batch_means_covariance, householder_solve, jit, polynomial_roots, square_root
-from .piecewise_linear_ls import INSTRUMENT_PASSES
 from .uncertainty import BLOCKS, MIN_BLOCK, STEP
 
 COND_LIMIT = 1e12  # ``_instrumental_step``: Z^T Phi above this condition number keeps the previous pass
@@ -125,8 +124,8 @@ def _simulate(u, partition, figures, a, b, delay):
 
 
 @numba.njit(cache=callee_digest() == CALLEE_DIGEST, nogil=True)
-def plls_solve(u, y, partition, primary, order, delay, bounds):
-    """PLLS-Hammerstein by least squares and INSTRUMENT_PASSES IV passes on the partition c with the
+def plls_solve(u, y, partition, primary, order, delay, passes, bounds):
+    """PLLS-Hammerstein by least squares and ``passes`` IV passes on the partition c with the
     primary index r (1-based) and, with ``bounds``, ``plls_uncertainty``. Returns (status, a, b_delay..b_n,
     mu, kappa, instrumented, bounds_status, poles_std, zeros_std, map_covariance); ``instrumented``:
     an IV pass was taken (the bounds are those of the IV estimate)."""
@@ -151,7 +150,7 @@ def plls_solve(u, y, partition, primary, order, delay, bounds):
         return failed
     instruments_t = phi_t
     instrumented = False
-    for _ in range(INSTRUMENT_PASSES):  # ``_instrumental_step``
+    for _ in range(passes):  # ``_instrumental_step``
         stable = True
         for pole in poles:
             stable = stable and abs(pole) < 1.0
