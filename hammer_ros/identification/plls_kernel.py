@@ -148,7 +148,7 @@ def plls_solve(u, y, partition, primary, order, delay, passes, bounds):
     ok, a, b, mu, kappa, figures, poles, zeros = _factors(theta, order, delay, width, knot_basis)
     if not ok:
         return failed
-    instruments_t = phi_t
+    instruments_t, accepted = phi_t, np.zeros((0, 0))  # Z^T and the last pass's Z^T Phi
     instrumented = False
     for _ in range(passes):  # ``_instrumental_step``
         stable = True
@@ -160,7 +160,7 @@ def plls_solve(u, y, partition, primary, order, delay, passes, bounds):
         normal = candidate_t @ phi
         if not all_finite(normal.ravel()) or np.linalg.cond(normal) > COND_LIMIT:
             break  # the reference keeps (Z, theta~): the next pass would see the same estimate
-        instruments_t, instrumented = candidate_t, True
+        instruments_t, accepted, instrumented = candidate_t, normal, True
         theta = np.linalg.solve(normal, candidate_t @ target)
         ok, a, b, mu, kappa, figures, poles, zeros = _factors(theta, order, delay, width, knot_basis)
         if not ok:
@@ -181,7 +181,8 @@ def plls_solve(u, y, partition, primary, order, delay, passes, bounds):
             for k in range(begin, end):
                 total += column[k] * residual[k]
             scores[block, e] = total
-    covariance = batch_means_covariance(scores @ np.linalg.pinv(instruments_t @ phi).T)
+    normal = accepted if instrumented else phi_t @ phi
+    covariance = batch_means_covariance(scores @ np.linalg.pinv(normal).T)
 
     # first-order propagation to the poles, zeros and the map's figures (``propagate``)
     root = square_root(covariance)
