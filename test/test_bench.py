@@ -46,6 +46,8 @@ def test_bench_sections_run_on_tiny_sizes():
     assert {r["method"] for r in solve} >= {"cls-arx", "cls-markov", "plls-hammerstein", "plls-feedback",
                                              "plls-hammerstein-feedback", "diagnose"}
     assert all(r["p50"] <= r["p99"] for r in solve if "p50" in r)
+    compiled_plls = [r for r in solve if r["method"] == "plls-hammerstein (compiled)"]
+    assert compiled_plls and all(r["poles_equal"] and r["reference"] > 0 and r["ratio"] > 0 for r in compiled_plls)
     loaded = [r for r in solve if "ingest_rate" in r]  # the mu-Markov solve beside ingestion: thread, process
     assert all("reference" in r for r in solve if r["method"].startswith("cls") and "p50" in r and r not in loaded)
     assert [r["method"] for r in loaded] == ["cls-markov (thread)", "cls-markov (process)", "end to end"]

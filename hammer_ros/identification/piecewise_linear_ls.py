@@ -42,12 +42,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import IdentificationError, UsageError
+from .compiled_loops import numba_enabled
 from .instrumental import check_reference, reference_part, solve_instrumental
 from .linear import LinearModel
 from .methods import IdentifyOptions
 from .regression import Regression, build_regression, lagged_columns, solve_least_squares
 from .result import IdentificationResult
-from .runs import Runs, per_run
+from .runs import Runs, per_run, several
 from .simulate import simulate_feedback, simulate_hammerstein, simulate_hammerstein_feedback
 from .static_maps import PiecewiseLinearMap, map_parameters
 from .uncertainty import Uncertainty, guarded, propagate, regression_covariance
@@ -306,6 +307,7 @@ def plls(
     uncertainty: bool = False,
     reference: np.ndarray | None = None,
     runs: Runs | None = None,
+    compiled: bool | None = None,
 ) -> PllsEstimate:
     """PLLS of paper 001, sec. 4 (the numbered steps at the end of 4.1, 4.2 and 4.3).
 
@@ -322,6 +324,9 @@ def plls(
     ``delay`` is the relative degree: b holds b_delay..b_n (the paper has delay = 1).
     ``runs`` (several experiments laid end to end): regression rows, instruments and the IV passes'
     simulations stay within each run, every run simulated from rest.
+    ``compiled``: None = the numba kernel ``plls_kernel.plls_solve`` (estimate and bounds) where it applies
+    (Hammerstein with ``instrumental``, beta None, one run, no reference) and numba is available
+    (``compiled_loops.numba_enabled``); False = this numpy reference, which the kernel equals to rounding.
     Raises IdentificationError when an interval of a partition holds no sample.
     """
     if structure not in STRUCTURES:
@@ -335,6 +340,11 @@ def plls(
         c = default_partition(u) if partition is None else np.asarray(partition, dtype=float)
         check_partition(u, c, "input")
         r = default_primary_index(c) if primary_index is None else primary_index
+        if (compiled is not False and structure == "hammerstein" and instrumental and beta is None and reference is None
+                and several(runs) is None and numba_enabled()):
+            found = compiled_plls(u, y, c, r, order, delay, uncertainty)
+            if found is not None:
+                return found
         eta = point_slope_basis(u, c, r)
     if has_feedback:
         d = default_partition(y) if feedback_partition is None else np.asarray(feedback_partition, dtype=float)
@@ -381,6 +391,29 @@ def plls(
         blocks, theta, regression_covariance(phi, reg.target - phi @ theta, z), z is not None)))
 
 
+def compiled_plls(u: np.ndarray, y: np.ndarray, partition: np.ndarray, primary: int, order: int, delay: int,
+                  uncertainty: bool) -> PllsEstimate | None:
+    """``plls(structure="hammerstein", instrumental=True)`` by the numba kernel ``plls_kernel.plls_solve``,
+    with its bounds when ``uncertainty`` (None: left to the reference, ``plls_uncertainty``); None where
+    the reference must decide about the estimate."""
+    from .plls_kernel import OK, plls_solve
+
+    arrays = [np.ascontiguousarray(x, dtype=float) for x in (u, y, partition)]
+    try:
+        status, a, b, mu, kappa, instrumented, bounds_status, poles_std, zeros_std, map_covariance = plls_solve(
+            *arrays, int(primary), int(order), int(delay), INSTRUMENT_PASSES, bool(uncertainty))
+    except (np.linalg.LinAlgError, ValueError, ZeroDivisionError):
+        return None
+    if status != OK:
+        return None
+    estimate = _estimate(a, b, delay, (partition, primary, mu, kappa), None)
+    if not uncertainty:
+        return estimate
+    if bounds_status != OK:
+        return None
+    return replace(estimate, uncertainty=Uncertainty(poles_std, zeros_std, None, map_covariance, _how(instrumented)))
+
+
 def _instrumental_step(estimate: PllsEstimate, u: np.ndarray, eta: np.ndarray, order: int, delay: int,
                        phi: np.ndarray, target: np.ndarray, z: np.ndarray | None,
                        theta: np.ndarray, runs: Runs | None = None) -> tuple[np.ndarray | None, np.ndarray]:
@@ -413,9 +446,13 @@ def plls_uncertainty(blocks, theta: np.ndarray, covariance: np.ndarray, instrume
         return est.linear.poles, est.linear.zeros, np.zeros(0) if pack is None else pack(est.nonlinearity)
 
     poles_std, zeros_std, map_covariance = propagate(figures, theta, covariance)
-    how = ("plls: " + ("instrumental variables" if instrumental else "least squares")
-           + ", batch means of the influences, first-order propagation")
-    return Uncertainty(poles_std, zeros_std, None, None if pack is None else map_covariance, how)
+    return Uncertainty(poles_std, zeros_std, None, None if pack is None else map_covariance, _how(instrumental))
+
+
+def _how(instrumental: bool) -> str:
+    """``Uncertainty.how`` of a PLLS estimate."""
+    return ("plls: " + ("instrumental variables" if instrumental else "least squares")
+            + ", batch means of the influences, first-order propagation")
 
 
 def _hammerstein_factors(theta: np.ndarray, reg: Regression, c, r, delay: int, beta) -> PllsEstimate:

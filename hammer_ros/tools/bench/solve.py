@@ -234,6 +234,34 @@ def compiled_solve_rows(window: int, repeats: int) -> list[dict[str, Any]]:
     return rows
 
 
+def compiled_plls_rows(window: int, repeats: int) -> list[dict[str, Any]]:
+    """The plls-hammerstein solve with its IV passes and bounds (the engine's settings: order 3, the default
+    partition) on an engine snapshot's window: the numba kernel (``plls_kernel``) beside the numpy reference,
+    in turn on the same window, p50 / p99 over ``repeats`` solves each; the poles of the two must agree to 1e-7."""
+    from ...identification.piecewise_linear_ls import plls
+
+    case = SolveCase("plls-hammerstein")
+    v, y = hammerstein_record(window, seed=4)
+    snap = feed_engine(case.config(window), v, y, chunk=1000).snapshot()
+    options = case.config(window).identify_options()
+    variants = {compiled: (lambda compiled=compiled: plls(snap.v, snap.y, options.order, options.delay,
+                                                          instrumental=True, uncertainty=True, compiled=compiled))
+                for compiled in (None, False)}
+    found = {key: solve() for key, solve in variants.items()}  # the warm-up (numba's cache loaded)
+    times: dict[bool | None, list[float]] = {key: [] for key in variants}
+    for _ in range(repeats):
+        for key, solve in variants.items():
+            times[key].append(_timed(solve)[0])
+    same = bool(np.max(np.abs(found[None].linear.poles - found[False].linear.poles)) <= 1e-7)
+    row = {"case": f"{case.label}, the solve with IV passes and bounds: compiled (reference: numpy)",
+           "method": "plls-hammerstein (compiled)", "window": window, "p50": 1e3 * _percentile(times[None], 50),
+           "p99": 1e3 * _percentile(times[None], 99), "n": repeats, "reference": 1e3 * _median(times[False]),
+           "poles_equal": same}
+    row["ratio"] = row["reference"] / row["p50"]
+    row["goal"] = f"poles equal to 1e-7: {'yes' if same else 'NO'}"
+    return [row]
+
+
 def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Section:
     section = Section("solve", "4. Solve latency on an engine snapshot (order 3, delay 1, G1 / tanh data)", [
         ("case", "method"), ("window", "W"), ("p50", "p50 ms"), ("p99", "p99 ms"), ("n", "solves"),
@@ -253,6 +281,7 @@ def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Se
             if case.method == "cls-markov" and case.mu == DEFAULT_MU and case.tau_max == default_tau_max(3, case.mu):
                 section.rows += _loaded_rows(case, window, repeats)
         section.rows += compiled_solve_rows(window, 4 * repeats)
+        section.rows += compiled_plls_rows(window, 2 * repeats)
         row = {"case": "diagnose (70/30 split)", "method": "diagnose", "window": window,
                **diagnose_latencies(window, max(3, slow_repeats // 3))}
         section.rows.append(row)
@@ -273,7 +302,9 @@ def solve_section(windows: Sequence[int], repeats: int, slow_repeats: int) -> Se
                          "the answer arrives is part of it; not counted in the goal); \"compiled\": the CLS "
                          "solve (`cls_from_correlations`, with or without its bounds) by the numba kernel "
                          "`cls_kernel.cls_solve` (what the engine runs) beside the numpy reference (its "
-                         "reference column: `compiled=False`), the four in turn on one snapshot")
+                         "reference column: `compiled=False`), the four in turn on one snapshot; likewise "
+                         "plls-hammerstein with its IV passes and bounds by `plls_kernel.plls_solve` beside "
+                         "`plls(compiled=False)`")
     return section
 
 
