@@ -28,7 +28,7 @@ from ..errors import IdentificationError
 from ..identification.compiled_loops import physical_servo_loop
 from ..identification.runs import Runs, several
 from ..identification.simulation_error import refine_starts
-from .servo_loop import ServoFit, fit_servo_loop
+from .servo_loop import MAX_DELAY, ServoFit, fit_servo_loop
 from .split import held_back, per_run
 
 NAMES = ("gain", "torque_limit", "offset", "gravity", "gravity_angle", "viscous", "coulomb")
@@ -117,9 +117,10 @@ def projected_start(servo: ServoFit, u: np.ndarray, y: np.ndarray, runs: Runs | 
 
 def fit_physical_servo(u: np.ndarray, y: np.ndarray, runs: Runs | None = None,
                        servo: ServoFit | None = None) -> PhysicalServoFit:
-    """The physical form (module docstring) on the estimation record, on the delay of ``servo``
-    (the servo loop's fit on the same data; fitted here when not given), refined on the
-    simulation error from ``projected_start`` and its gain/damping variants (``SCALES``)."""
+    """The physical form (module docstring) on the estimation record, refined on the simulation
+    error from ``projected_start`` of ``servo`` (the servo loop's fit on the same data; fitted here
+    when not given) and its gain/damping variants (``SCALES``), each with every delay of the
+    command 0..MAX_DELAY (the maps may have absorbed a delay the constants cannot); the best."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     runs = several(runs)
     servo = fit_servo_loop(u, y, runs) if servo is None else servo
@@ -129,20 +130,21 @@ def fit_physical_servo(u: np.ndarray, y: np.ndarray, runs: Runs | None = None,
         raise IdentificationError(f"no start of the physical servo loop: {error}") from error
     if not np.all(np.isfinite(start)):
         raise IdentificationError("no finite start of the physical servo loop")
-    starts = []
+    variants = []
     for gain, damping in SCALES:
         theta = start.copy()
         theta[0] *= gain
         theta[5:] *= damping
-        starts.append(theta)
-    run = _runner(servo.layout.delay, u, y, runs)
-    fits = refine_starts([(run, t) for t in starts], y, len(starts), len(starts), SCREEN_ITERATIONS, KEPT, ITERATIONS)
+        variants.append(theta)
+    delays = range(MAX_DELAY + 1)
+    starts = [(_runner(delay, u, y, runs), theta) for delay in delays for theta in variants]
+    fits = refine_starts(starts, y, len(starts), len(starts), SCREEN_ITERATIONS, KEPT, ITERATIONS)
     if not fits:
         raise IdentificationError("the simulation of every start of the physical servo loop diverges")
-    _, theta, sse = fits[0]
+    i, theta, sse = fits[0]
     theta = theta.copy()
     theta[[1, 5, 6]] = np.abs(theta[[1, 5, 6]])  # as simulated: a torque limit and friction are not negative
-    return PhysicalServoFit(theta, servo.layout.delay, float(y[0]), sse, len(starts))
+    return PhysicalServoFit(theta, delays[i // len(variants)], float(y[0]), sse, len(starts))
 
 
 @dataclass(frozen=True, eq=False)
