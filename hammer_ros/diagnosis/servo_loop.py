@@ -184,13 +184,25 @@ class ServoFit:
     sse: float
     starts: int
 
+    def from_rest(self, y0: float) -> Callable[[np.ndarray], np.ndarray]:
+        """u -> y of the loop from rest at y0."""
+        return self.layout.simulator(self.theta, y0)
+
     @property
     def simulate(self) -> Callable[[np.ndarray], np.ndarray]:
-        return self.layout.simulator(self.theta, self.y0)
+        return self.from_rest(self.y0)
 
     @property
     def parameter_count(self) -> int:
         return self.layout.size + 1  # and the delay
+
+    @property
+    def delay(self) -> int:
+        return self.layout.delay
+
+    def maps(self) -> tuple[PiecewiseLinearMap, PiecewiseLinearMap, PiecewiseLinearMap]:
+        """(f, h, phi): the map on the loop error, on the output and on its difference."""
+        return self.layout.maps(self.theta)
 
     def details(self, u: np.ndarray, y: np.ndarray) -> dict:
         """The fitted maps in the JSON form (points over the estimation data's ranges)."""

@@ -20,6 +20,7 @@ imported or when the environment variable ``HAMMER_ROS_NO_NUMBA`` is ``1``.
 
 from __future__ import annotations
 
+import math
 import os
 import types
 
@@ -40,7 +41,7 @@ def _kernel(name: str):
         try:
             _KERNELS.update(_compile())
         except ImportError:
-            _KERNELS.update(feedback=None, cascade=None, play=None, servo=None)
+            _KERNELS.update(feedback=None, cascade=None, play=None, servo=None, physical_servo=None)
     return _KERNELS[name]
 
 
@@ -53,7 +54,8 @@ def _compile() -> dict:
     return {"feedback": jit(types.FunctionType(_feedback_core.__code__, scope, "_feedback_core")),
             "cascade": jit(types.FunctionType(_cascade_core.__code__, scope, "_cascade_core")),
             "play": jit(_play_core),
-            "servo": jit(types.FunctionType(_servo_core.__code__, scope, "_servo_core"))}
+            "servo": jit(types.FunctionType(_servo_core.__code__, scope, "_servo_core")),
+            "physical_servo": jit(_physical_servo_core)}
 
 
 def feedback_loop(forced: np.ndarray, b_past: np.ndarray, a_past: np.ndarray, knots: np.ndarray,
@@ -237,3 +239,36 @@ def _servo_core(u, y0, coulomb, fk, fv, fs, hk, hv, hs, pk, pv, ps, y):
         if not abs(current) < 1e150:
             current = 1e150
             previous = 1e150
+
+
+def physical_servo_loop(u: np.ndarray, y0: float, gain: float, torque_limit: float, gravity: float,
+                        gravity_angle: float, viscous: float, coulomb: float,
+                        compiled: bool | None = None) -> np.ndarray:
+    """y(k) of ``servo_loop`` with its maps in their physical form, from rest at y0:
+
+        w(k+1) = w(k) + sat_T(K (u(k) - y(k))) - G sin(y(k) - p) - B w(k) - C sign(w(k)),    y(k+1) = y(k) + w(k+1),
+
+    a proportional controller of gain K saturating at the torque limit T, the gravity of a
+    pendulum whose angle y is in radians (vanishing at y = p) and viscous (B) and Coulomb (C)
+    friction, in units of the output per sample^2. ``compiled`` as in ``feedback_loop``."""
+    args = [np.ascontiguousarray(u, dtype=float), float(y0), float(gain), float(torque_limit), float(gravity),
+            float(gravity_angle), float(viscous), float(coulomb)]
+    return _recursion("physical_servo", _physical_servo_core, args, compiled)
+
+
+def _physical_servo_core(u, y0, gain, limit, gravity, angle, viscous, coulomb, y):
+    """The recursion of ``physical_servo_loop`` (a run that leaves every finite bound stays there)."""
+    current, w = y0, 0.0
+    for k in range(len(u)):
+        y[k] = current
+        torque = min(max(gain * (u[k] - current), -limit), limit)
+        acc = torque - gravity * math.sin(current - angle) - viscous * w
+        if w > 0.0:
+            acc -= coulomb
+        elif w < 0.0:
+            acc += coulomb
+        w = w + acc
+        current = current + w
+        if not abs(current) < 1e150:
+            current = 1e150
+            w = 0.0

@@ -25,7 +25,7 @@ from ...identification.simulation_error import (
 )
 from ...identification.static_maps import TAILS, PiecewiseLinearMap, with_tails
 from ..hammerstein import bic, quantile_partition
-from ..servo_loop import fit_servo_loop
+from ..physical_servo import PhysicalServoFit, choose_servo_form
 from ..split import INITIAL_SAMPLES, Split, held_back, per_run, rest_input
 from ..storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .common import NUMERICAL_FAILURES, Context, ExtendedModel, NotFitted, failure_reason, map_plot, order_details
@@ -37,6 +37,8 @@ STORAGE_CASCADE = ("two storages in series: x1+ = x1 + f(u) - h1(x1), x2+ = x2 +
                    "(non-linear feedback of both levels)")
 SERVO_LOOP = ("servo loop: y = G[f(u - y) - h(y) - phi(dy)], G a double integrator (the controller's map on the "
               "loop error, gravity on the output, friction on its difference)")
+PHYSICAL_SERVO = ("servo loop, physical form: y = G[sat_T(K (u + o - y)) - G_g sin(y - p) - B dy - C sign(dy)], G a "
+                  "double integrator (a saturated P controller, a pendulum's gravity, viscous and Coulomb friction)")
 KEPT_STARTS = 2  # starts refined to the end
 KEPT_CASCADES = 4  # storages in series refined to the end on a short record (all screened there); the best
 # whose rest states are plausible is kept
@@ -211,45 +213,59 @@ def _random_denominator(rng: np.random.Generator, poles: np.ndarray) -> np.ndarr
 
 
 def extend_output_feedback(ctx: Context) -> ExtendedModel:
-    """The output fed back through static maps, in the form that fits the estimation data best
+    """The output fed back through static maps, in the family that fits the estimation data best
     by its simulation-error BIC (``bic``, ``parameters`` in the details): the non-linear feedback
     loop y = G[f(v) - h(y)] or two storages in series (``feedback_loop_model``), or the servo loop
-    y = G[f(v - y) - h(y) - phi(dy)] of a system inside its own position loop (``servo_loop``: the
-    map on the loop error, friction on the output's difference). Either may fail on a record;
-    the other is then the extension."""
+    y = G[f(v - y) - h(y) - phi(dy)] of a system inside its own position loop (``servo_loop_model``:
+    the map on the loop error, friction on the output's difference), scored by its maps' fit; the
+    servo family's form (its maps or its physical constants) is chosen on held-back estimation data.
+    Either family may fail on a record; the other is then the extension."""
     s = ctx.split
-    forms, failures = [], []
-    for form in (feedback_loop_model, servo_loop_model):
+    candidates, failures = [], []
+    for form in (_feedback_candidate, servo_loop_model):
         try:
-            forms.append(form(ctx))
+            candidates.append(form(ctx))
         except NUMERICAL_FAILURES as error:
             failures.append(failure_reason(error))
-    if not forms:
+    if not candidates:
         raise NotFitted("; ".join(failures))
     skip = min(ctx.skip, s.n_est // 5)
 
-    def score(model: ExtendedModel) -> float:
-        return bic(s.y_est[skip:], s.estimation_output(model.simulate)[skip:], model.details["parameters"])
+    def score(candidate: tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]) -> float:
+        _, simulate, parameters = candidate
+        return bic(s.y_est[skip:], s.estimation_output(simulate)[skip:], parameters)
 
-    return min(forms, key=score)
+    return min(candidates, key=score)[0]
 
 
-def servo_loop_model(ctx: Context) -> ExtendedModel:
-    """The servo loop (``servo_loop.fit_servo_loop``) as an extension of ``output_feedback``."""
+def _feedback_candidate(ctx: Context) -> tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]:
+    model = feedback_loop_model(ctx)
+    return model, model.simulate, model.details["parameters"]
+
+
+def servo_loop_model(ctx: Context) -> tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]:
+    """The servo loop as an extension of ``output_feedback``: its maps (``servo_loop.fit_servo_loop``)
+    or its physical form (``physical_servo``), whichever simulates held-back estimation runs better
+    (``physical_servo.choose_servo_form``; both held-back RMS in the details); with the simulator and
+    parameter count of the maps' fit, by which the family is scored."""
     s = ctx.split
     try:
-        fit = fit_servo_loop(s.v_est, s.y_est, s.runs_est)
+        choice = choose_servo_form(s.v_est, s.y_est, s.runs_est)
     except IdentificationError as error:
         raise NotFitted(f"servo loop: {error}") from error
+    fit = choice.fit
     simulate = fit.simulate
     output = s.validation_output(simulate)
-    f, h, phi = fit.layout.maps(fit.theta)
-    e = per_run(lambda u: held_back(u, fit.layout.delay), s.v_est, s.runs_est) - s.y_est
+    e = per_run(lambda u: held_back(u, fit.delay), s.v_est, s.runs_est) - s.y_est
+    f, h, phi = fit.maps()
     maps = (map_plot("f (controller on the loop error u - y)", f, e),
             map_plot("h (output feedback: gravity)", h, s.y_est),
             map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))
-    details = {**fit.details(s.v_est, s.y_est), "parameters": fit.parameter_count}
-    return ExtendedModel("output_feedback", SERVO_LOOP, output, details, maps, simulate)
+    details = {**fit.details(s.v_est, s.y_est), "parameters": fit.parameter_count,
+               "held_back_rms": choice.held_back_rms}
+    structure = PHYSICAL_SERVO if isinstance(fit, PhysicalServoFit) else SERVO_LOOP
+    model = ExtendedModel("output_feedback", structure, output, details, maps, simulate)
+    return model, choice.maps.simulate, choice.maps.parameter_count
 
 
 def feedback_loop_model(ctx: Context) -> ExtendedModel:
