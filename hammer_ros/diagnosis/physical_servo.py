@@ -182,11 +182,13 @@ def _held_back_rms(fit: ServoFit | PhysicalServoFit, u: np.ndarray, y: np.ndarra
     return value if np.isfinite(value) else np.inf
 
 
-def choose_servo_form(u: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> ServoChoice:
+def choose_servo_form(u: np.ndarray, y: np.ndarray, runs: Runs | None = None,
+                      maps: ServoFit | None = None) -> ServoChoice:
     """The servo loop's maps or its physical form, whichever simulates the held-back estimation data
     (``_held_back_part``) better when both are fitted on the rest (the physical form on a tie: fewer
-    constants); the winner is then fitted on all the estimation data. A form that fails on the
-    shorter data loses; when the comparison cannot be made at all, the maps."""
+    constants); the winner is then fitted on all the estimation data (``maps``: the maps' fit on all
+    of it when the caller has it). A form that fails on the shorter data loses; when the comparison
+    cannot be made at all, the maps."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     runs = several(runs)
     cut, fit_runs, all_runs = _held_back_part(u.size, runs)
@@ -198,7 +200,7 @@ def choose_servo_form(u: np.ndarray, y: np.ndarray, runs: Runs | None = None) ->
         scores["physical_servo"] = _held_back_rms(physical_part, u, y, cut, all_runs)
     except IdentificationError:
         pass
-    servo = fit_servo_loop(u, y, runs)
+    servo = fit_servo_loop(u, y, runs) if maps is None else maps
     if scores.get("physical_servo", np.inf) <= scores.get("servo_loop", np.inf):
         try:
             return ServoChoice(fit_physical_servo(u, y, runs, servo), servo, scores)

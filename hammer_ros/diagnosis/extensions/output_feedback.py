@@ -26,6 +26,7 @@ from ...identification.simulation_error import (
 from ...identification.static_maps import TAILS, PiecewiseLinearMap, with_tails
 from ..hammerstein import bic, quantile_partition
 from ..physical_servo import PhysicalServoFit, choose_servo_form
+from ..servo_loop import ServoFit, fit_servo_loop
 from ..split import INITIAL_SAMPLES, Split, held_back, per_run, rest_input
 from ..storage_cascade import CascadeLayout, cascade_starts, plausible_rest
 from .common import NUMERICAL_FAILURES, Context, ExtendedModel, NotFitted, failure_reason, map_plot, order_details
@@ -216,56 +217,53 @@ def extend_output_feedback(ctx: Context) -> ExtendedModel:
     """The output fed back through static maps, in the family that fits the estimation data best
     by its simulation-error BIC (``bic``, ``parameters`` in the details): the non-linear feedback
     loop y = G[f(v) - h(y)] or two storages in series (``feedback_loop_model``), or the servo loop
-    y = G[f(v - y) - h(y) - phi(dy)] of a system inside its own position loop (``servo_loop_model``:
-    the map on the loop error, friction on the output's difference), scored by its maps' fit; the
-    servo family's form (its maps or its physical constants) is chosen on held-back estimation data.
-    Either family may fail on a record; the other is then the extension."""
+    y = G[f(v - y) - h(y) - phi(dy)] of a system inside its own position loop (its maps'
+    fit, ``servo_loop.fit_servo_loop``: the map on the loop error, friction on the output's
+    difference). When the servo loop wins, its form (its maps or its physical constants) is chosen
+    on held-back estimation data (``servo_loop_model``). Either family may fail on a record; the
+    other is then the extension."""
     s = ctx.split
-    candidates, failures = [], []
-    for form in (_feedback_candidate, servo_loop_model):
-        try:
-            candidates.append(form(ctx))
-        except NUMERICAL_FAILURES as error:
-            failures.append(failure_reason(error))
-    if not candidates:
-        raise NotFitted("; ".join(failures))
     skip = min(ctx.skip, s.n_est // 5)
 
-    def score(candidate: tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]) -> float:
-        _, simulate, parameters = candidate
+    def score(simulate: Callable[[np.ndarray], np.ndarray], parameters: int) -> float:
         return bic(s.y_est[skip:], s.estimation_output(simulate)[skip:], parameters)
 
-    return min(candidates, key=score)[0]
-
-
-def _feedback_candidate(ctx: Context) -> tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]:
-    model = feedback_loop_model(ctx)
-    return model, model.simulate, model.details["parameters"]
-
-
-def servo_loop_model(ctx: Context) -> tuple[ExtendedModel, Callable[[np.ndarray], np.ndarray], int]:
-    """The servo loop as an extension of ``output_feedback``: its maps (``servo_loop.fit_servo_loop``)
-    or its physical form (``physical_servo``), whichever simulates held-back estimation runs better
-    (``physical_servo.choose_servo_form``; both held-back RMS in the details); with the simulator and
-    parameter count of the maps' fit, by which the family is scored."""
-    s = ctx.split
+    loop = servo = None
+    failures = []
     try:
-        choice = choose_servo_form(s.v_est, s.y_est, s.runs_est)
+        loop = feedback_loop_model(ctx)
+    except NUMERICAL_FAILURES as error:
+        failures.append(failure_reason(error))
+    try:
+        servo = fit_servo_loop(s.v_est, s.y_est, s.runs_est)
     except IdentificationError as error:
-        raise NotFitted(f"servo loop: {error}") from error
+        failures.append(failure_reason(NotFitted(f"servo loop: {error}")))
+    if servo is not None and (loop is None or score(servo.simulate, servo.parameter_count)
+                              < score(loop.simulate, loop.details["parameters"])):
+        return servo_loop_model(ctx, servo)
+    if loop is None:
+        raise NotFitted("; ".join(failures))
+    return loop
+
+
+def servo_loop_model(ctx: Context, maps: ServoFit) -> ExtendedModel:
+    """The servo loop as an extension of ``output_feedback``: its maps (``maps``, fitted on the
+    estimation data) or its physical form (``physical_servo``), whichever simulates held-back
+    estimation runs better (``physical_servo.choose_servo_form``; both held-back RMS in the details)."""
+    s = ctx.split
+    choice = choose_servo_form(s.v_est, s.y_est, s.runs_est, maps)
     fit = choice.fit
     simulate = fit.simulate
     output = s.validation_output(simulate)
     e = per_run(lambda u: held_back(u, fit.delay), s.v_est, s.runs_est) - s.y_est
     f, h, phi = fit.maps()
-    maps = (map_plot("f (controller on the loop error u - y)", f, e),
-            map_plot("h (output feedback: gravity)", h, s.y_est),
-            map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))
+    plots = (map_plot("f (controller on the loop error u - y)", f, e),
+             map_plot("h (output feedback: gravity)", h, s.y_est),
+             map_plot("phi (friction on the output's difference)", phi, np.diff(s.y_est)))
     details = {**fit.details(s.v_est, s.y_est), "parameters": fit.parameter_count,
                "held_back_rms": choice.held_back_rms}
     structure = PHYSICAL_SERVO if isinstance(fit, PhysicalServoFit) else SERVO_LOOP
-    model = ExtendedModel("output_feedback", structure, output, details, maps, simulate)
-    return model, choice.maps.simulate, choice.maps.parameter_count
+    return ExtendedModel("output_feedback", structure, output, details, plots, simulate)
 
 
 def feedback_loop_model(ctx: Context) -> ExtendedModel:
