@@ -45,6 +45,16 @@ def _roots_json(roots: np.ndarray) -> list[list[float]]:
     return [[r.real, r.imag] for r in np.asarray(roots, dtype=complex).tolist()]
 
 
+@dataclass(frozen=True)
+class Evaluation:
+    """A model on a record (``IdentificationResult.evaluate``): its free-run fit percent and rms, and
+    its own warnings there."""
+
+    fit: float
+    rms: float
+    warnings: tuple[ModelWarning, ...]
+
+
 @dataclass(frozen=True, eq=False)
 class IdentificationResult:
     """An identified model.
@@ -82,11 +92,19 @@ class IdentificationResult:
         settle = rest_length(self.linear.poles)
         return runs.simulate(self.simulate, v, settle, runs.initial_states(self.simulate, v, y, settle))
 
+    def evaluate(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> Evaluation:
+        """The model on the record (v, y): its free-run fit and rms (``free_run``) and its own warnings
+        there (``trust.model_warnings``)."""
+        y = np.asarray(y, dtype=float)
+        fit, rms = fit_and_rms(y, self.free_run(v, y, runs))
+        return Evaluation(fit, rms, model_warnings(self, np.asarray(v, dtype=float), y, fit))
+
     def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None,
-                warnings: Sequence[ModelWarning] = ()) -> dict:
+                warnings: Sequence[ModelWarning] = (), evaluation: Evaluation | None = None) -> dict:
         """The ``identify --json`` document; fit_percent and rms when data (v, y) is given (with
         ``free_run``: every run from its own start). ``warnings``: the given ones (e.g. the record's)
-        and, with data, the model's own (``trust.model_warnings``)."""
+        and, with data, the model's own (``trust.model_warnings``). ``evaluation``: ``evaluate(v, y,
+        runs)`` when the caller has it."""
         doc: dict[str, Any] = {
             "method": self.method,
             "order": int(self.order if self.order is not None else self.linear.order),
@@ -111,9 +129,9 @@ class IdentificationResult:
         if self.uncertainty is not None:
             self.uncertainty.add_to(doc, self.nonlinearity)
         if v is not None and y is not None:
-            fit, rms = fit_and_rms(y, self.free_run(v, y, runs))
-            doc["fit_percent"], doc["rms"] = _finite_or_none(fit), _finite_or_none(rms)
-            warnings = (*warnings, *model_warnings(self, v, np.asarray(y, dtype=float), fit))
+            evaluation = self.evaluate(v, y, runs) if evaluation is None else evaluation
+            doc["fit_percent"], doc["rms"] = _finite_or_none(evaluation.fit), _finite_or_none(evaluation.rms)
+            warnings = (*warnings, *evaluation.warnings)
         doc["warnings"] = warnings_json(warnings)
         for key, value in self.extra.items():
             doc.setdefault(key, value)

@@ -111,9 +111,9 @@ class Runs:
         made once, with the method's estimate, and kept while the model is refined."""
         choice = []
         for part, y_part in zip(self.split(v), self.split(np.asarray(y, dtype=float))):
-            head = slice(0, max(min(settle, part.size), 1))
-            errors = [float(np.sum((y_part[head] - np.asarray(out, dtype=float)[head]) ** 2))
-                      for out in (Runs.one(part.size).simulate(simulate, part, settle, (rest,))
+            head = part[: max(min(settle, part.size), 1)]  # a causal simulation of the head alone: its outputs
+            errors = [float(np.sum((y_part[: head.size] - np.asarray(out, dtype=float)) ** 2))
+                      for out in (Runs.one(head.size).simulate(simulate, head, settle, (rest,))
                                   for rest in (False, True))]
             choice.append(bool(np.isfinite(errors[1]) and (errors[1] < errors[0] or not np.isfinite(errors[0]))))
         return tuple(choice)

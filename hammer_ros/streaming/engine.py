@@ -62,7 +62,7 @@ from ..identification.instrumental import refinement_input
 from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
 from ..identification.result import IdentificationResult, fit_percent
-from ..identification.trust import model_warnings, untrusted
+from ..identification.trust import ModelWarning, untrusted
 from .aligner import StreamAligner
 from .config import CLS_STRUCTURES, KEEP_MARGIN, PE_CONDITION_LIMIT, EngineConfig, EngineStats
 from .correlation_window import CorrelationWindow
@@ -283,6 +283,7 @@ class Estimate:
     result: IdentificationResult | None = None
     doc: dict | None = None
     fit: float | None = None  # the model's fit percent on the window (None: not finite)
+    warnings: tuple[ModelWarning, ...] = ()  # the model's own on the window (``trust.model_warnings``)
     status: str = ""  # '' (a model, or stopped by a check) | failed | exception
     reason: str = ""
     seconds: float = 0.0
@@ -377,12 +378,13 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
                 from ..identification.refinement import refine_result
 
                 result = refine_result(result, refinement_input(v, reference), y)
-            doc = result.to_json(v, y) if document else None
-            fit = doc.get("fit_percent") if document else fit_percent(y, result.free_run(v, y))
+            evaluation = result.evaluate(v, y)
+            doc = result.to_json(v, y, evaluation=evaluation) if document else None
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
         status, reason = _failure(cfg.method, exc)
         return estimate(status=status, reason=reason)
-    return estimate(result=result, doc=doc, fit=fit)
+    fit = evaluation.fit if math.isfinite(evaluation.fit) else None
+    return estimate(result=result, doc=doc, fit=fit, warnings=evaluation.warnings)
 
 
 def _failure(method: str, exc: Exception) -> tuple[str, str]:
@@ -439,7 +441,7 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
     if wide:
         return outcome(False, f"uncertain model: {wide}", status="uncertain")
     closed = snapshot.reference_window is not None  # the free-run fit on v is the noise fed back: no poor_fit
-    doubt = untrusted(w for w in model_warnings(result, v, y, estimate.fit) if not (closed and w.code == "poor_fit"))
+    doubt = untrusted(w for w in estimate.warnings if not (closed and w.code == "poor_fit"))
     if doubt is not None:  # poor_fit, not_exciting: never published as a confident model
         return outcome(False, f"uncertain model: {doubt.code}: {doubt.message}", status="uncertain")
     return outcome(True, "", result, estimate.doc, markov=_markov(result, estimate.doc) if document else ())
