@@ -34,6 +34,7 @@ from scipy import signal
 
 from ..identification.instrumental import causal_projection
 from ..identification.regression import lagged_columns, solve_least_squares
+from ..identification.runs import Runs, per_run, several
 from ..identification.trust import ModelWarning, closed_loop_warning, is_trajectory
 from .residual_tests import MAX_LAG, Evidence, bartlett_cross_sigma, simultaneous_level
 
@@ -45,38 +46,53 @@ REFERENCE_NOTE = ("the reference was used: the baseline and the extensions are e
                   "reference's part of the input (the two-stage method), which the feedback does not bias")
 
 
-def innovations(u: np.ndarray, order: int = AR_ORDER) -> np.ndarray:
+def innovations(u: np.ndarray, order: int = AR_ORDER, runs: Runs | None = None) -> np.ndarray:
     """nu(k) = u'(k) + sum_j a_j u'(k - j), the residual of the least-squares AR(order) fit of
-    u' = u - mean(u) (zero before the record), i.e. u prewhitened."""
-    u = np.asarray(u, dtype=float) - np.mean(u)
-    rows = np.arange(order, u.size)
+    u' = u - mean(u) (zero before the record), i.e. u prewhitened. With ``runs``: u' = u less its
+    run's mean, one AR fit to the rows of every run whose lags stay in the run, and nu of every
+    run without its first ``order`` samples (``runs.rows(order)``), concatenated."""
+    runs = several(runs)
+    u = _centred(u, runs)
+    rows = np.arange(order, u.size) if runs is None else runs.rows(order)
     a = solve_least_squares(-lagged_columns(u, range(1, order + 1), rows), u[rows])
     if not np.all(np.isfinite(a)):
-        return u
-    return signal.lfilter(np.concatenate([[1.0], a]), [1.0], u)[order:]
+        return u if runs is None else u[rows]
+    return per_run(lambda part: signal.lfilter(np.concatenate([[1.0], a]), [1.0], part), u, runs)[rows]
 
 
-def future_input_correlation(u: np.ndarray, residual: np.ndarray,
-                             max_lag: int = MAX_LAG) -> tuple[np.ndarray, float]:
+def _centred(x: np.ndarray, runs: Runs | None) -> np.ndarray:
+    """x less its mean, or less every run's own mean (``runs``: each at its own operating point)."""
+    return per_run(lambda part: part - np.mean(part), np.asarray(x, dtype=float), runs)
+
+
+def future_input_correlation(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX_LAG,
+                             runs: Runs | None = None) -> tuple[np.ndarray, float]:
     """(r(tau) of the module docstring for tau = 1..max_lag: the residual against the input's
-    innovations tau samples later, its standard deviation under independence)."""
-    nu = innovations(u)
+    innovations tau samples later, its standard deviation under independence). With ``runs`` the
+    products e(k) nu(k + tau) are summed over the pairs within one run (no prewhitening filter,
+    projection lag or product reaches into another run)."""
+    runs = several(runs)
+    nu = innovations(u, runs=runs)
     e = np.asarray(residual, dtype=float)
-    e = (e - causal_projection(e, u, INPUT_LAGS))[-nu.size:]
-    e, nu = e - e.mean(), nu - nu.mean()
+    e = e - causal_projection(e, u, INPUT_LAGS, runs)
+    kept = None if runs is None else Runs.from_lengths(runs.lengths - AR_ORDER)
+    e = e[-nu.size:] if runs is None else e[runs.rows(AR_ORDER)]
+    e, nu = _centred(e, kept), _centred(nu, kept)
     scale = np.sqrt((e @ e) * (nu @ nu))
     if scale == 0.0:
         return np.zeros(max_lag), 1.0
-    r = np.array([e[: e.size - tau] @ nu[tau:] for tau in range(1, max_lag + 1)]) / scale
-    return r, bartlett_cross_sigma(nu, e)
+    pieces = [(e, nu)] if kept is None else list(zip(kept.split(e), kept.split(nu)))
+    r = np.array([sum(a[: a.size - tau] @ b[tau:] for a, b in pieces) for tau in range(1, max_lag + 1)]) / scale
+    return r, bartlett_cross_sigma(nu, e, runs=kept)
 
 
 def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX_LAG,
-                         reference: bool = False) -> Evidence:
+                         reference: bool = False, runs: Runs | None = None) -> Evidence:
     """The ``closed_loop`` evidence row of ``diagnose`` for the measured input ``u`` and a model's
     residual (``passed`` False: the input depends on past residuals, a closed loop); its note says
-    what that means for the estimates (``reference``: the diagnosis used one)."""
-    r, sigma = future_input_correlation(u, residual, max_lag)
+    what that means for the estimates (``reference``: the diagnosis used one; ``runs``: the runs of
+    u, ``future_input_correlation``)."""
+    r, sigma = future_input_correlation(u, residual, max_lag, runs)
     value, bound = float(np.max(np.abs(r))), simultaneous_level(max_lag) * sigma
     note = REFERENCE_NOTE if reference else ("" if value <= bound else WARNING)
     return Evidence(TEST_NAME, value, bound, value <= bound, note=note)

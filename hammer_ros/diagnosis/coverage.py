@@ -7,8 +7,8 @@ the map's input is the command v itself): the ``input_range`` evidence row gives
 validation samples whose input lies outside the estimation range widened by RANGE_MARGIN of its
 span, against COVERAGE_BOUND. When it fails, every model is judged on the covered samples only:
 those whose input, and the ``memory`` inputs before it (the baseline's settling time: the part
-of the past the output still remembers), lie in range. ``auto_split`` chooses an estimation part
-that covers the validation part where the record allows it.
+of the past the output still remembers; never before the start of the sample's run), lie in
+range. ``auto_split`` chooses an estimation part that covers the validation part where the record allows it.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..identification.runs import Runs, several
 from .residual_tests import Evidence
 from .split import Split, check_split, with_reference
 
@@ -67,8 +68,9 @@ class InputCoverage:
                 "validation_samples": n, "memory": self.memory, "judged_on": text}
 
 
-def input_coverage(v_est: np.ndarray, v_val: np.ndarray, memory: int) -> InputCoverage:
-    """The coverage of ``v_val`` by the range of ``v_est`` (module docstring)."""
+def input_coverage(v_est: np.ndarray, v_val: np.ndarray, memory: int, runs: Runs | None = None) -> InputCoverage:
+    """The coverage of ``v_val`` by the range of ``v_est`` (module docstring); ``runs``: the runs of
+    ``v_val``, each starting at rest, so a sample's memory stops at its run's first sample."""
     lo, hi = float(np.min(v_est)), float(np.max(v_est))
     margin = RANGE_MARGIN * (hi - lo)
     lo, hi = lo - margin, hi + margin
@@ -77,7 +79,9 @@ def input_coverage(v_est: np.ndarray, v_val: np.ndarray, memory: int) -> InputCo
     # covered: no sample outside among this one and the memory before it
     count = np.concatenate([[0], np.cumsum(~inside)])
     k = np.arange(v_val.size)
-    covered = count[k + 1] - count[np.maximum(k - memory, 0)] == 0
+    runs = several(runs)
+    first = 0 if runs is None else np.repeat(np.asarray(runs.starts, dtype=int), runs.lengths)
+    covered = count[k + 1] - count[np.maximum(k - memory, first)] == 0
     return InputCoverage(lo, hi, float(np.min(v_val)), float(np.max(v_val)), float(np.mean(~inside)), covered, memory)
 
 

@@ -151,7 +151,7 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     measured_v_val = measured.delayed_input(dead_time).v_val
     base = fit_baseline(split.v_est, split.y_est, order, delay, split.runs_est)
     skip = transient_samples(base.linear.poles, split.n_est)
-    coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5))
+    coverage = input_coverage(split.v_est, split.v_val, min(skip, split.v_val.size // 5), split.runs_val)
     judgeable = coverage.passed or int(np.count_nonzero(coverage.covered)) >= MIN_SAMPLES
     if judgeable:
         split = replace(split, judged=coverage.judged())
@@ -165,7 +165,12 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     tested_runs = _runs_of(val_runs, rows) if split.has_runs else None
 
     correlation = tuple(residual_tests(split.v_val[rows], split.y_val[rows], e_val[rows], runs=tested_runs))
-    lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
+    if split.est_runs.count == 1:
+        lines = spectral_lines((split.y_est - x_est)[skip:], [split.v_est[skip:], x_est[skip:]])
+    else:  # every estimation run without its own transient, Bartlett's average of the runs' periodograms
+        est = split.est_runs.rows(min(skip, int(split.est_runs.lengths.min()) // 5))
+        lines = spectral_lines((split.y_est - x_est)[est], [split.v_est[est], x_est[est]],
+                               runs=_runs_of(split.est_runs, est))
     windows = windowed_variation(split.judged_record(split.y_est, split.y_val),
                                  split.judged_record(x_est, x_val), skip,
                                  runs=_judged_runs(split) if split.has_runs else None)
@@ -228,7 +233,8 @@ def diagnose(split: Split, order: int | None = None, delay: int | None = None) -
     tied = _within_noise(split, extensions, gains, cause) if cause != "none" else []
     evidence = (coverage.evidence(), *(t.evidence() for t in correlation), *(t.evidence for t in cause_tests))
     confidence = _confidence(cause, gains, evidence) * (TIED_CONFIDENCE if tied else 1.0)
-    evidence += (closed_loop_evidence(measured_v_val[rows], e_val[rows], reference=split.r_est is not None),)
+    evidence += (closed_loop_evidence(measured_v_val[rows], e_val[rows], reference=split.r_est is not None,
+                                      runs=tested_runs),)
     chain = None if cause == "none" else extend_chain(split, extensions[cause], baseline_score.rms, skip)
     final = None if chain is None else chain.final
     extended_score = None if final is None else _score(final.structure, split, final.validation_output)

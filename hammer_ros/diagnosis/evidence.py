@@ -35,7 +35,7 @@ from scipy import ndimage, signal, stats
 from ..identification.correlation import centred_square, cross_correlation
 from ..identification.piecewise_linear_ls import interval_index
 from ..identification.regression import lagged_columns, solve_least_squares
-from ..identification.runs import Runs
+from ..identification.runs import Runs, several
 from .hammerstein import HammersteinModel
 from .residual_tests import Evidence
 from .split import per_run
@@ -264,28 +264,65 @@ class LineTest:
         return CauseTest(ev, 0.0 if passed else self.explained)
 
 
-def _line_ratio(x: np.ndarray, nfft: int, half_width: int) -> np.ndarray:
-    """Hann periodogram of x divided by its running median over +-half_width bins."""
+def _line_ratio(x: np.ndarray, nfft: int, half_width: int, runs: Runs | None = None) -> np.ndarray:
+    """Hann periodogram of x divided by its running median over +-half_width bins. With ``runs``
+    Bartlett's average: every run's periodogram (its own mean removed, per unit window energy) on
+    the common grid of ``nfft`` bins, averaged over the runs."""
     x = np.asarray(x, dtype=float)
-    p = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(x.size), nfft)) ** 2
+    if runs is None:
+        p = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(x.size), nfft)) ** 2
+    else:
+        p = np.mean([np.abs(np.fft.rfft((part - part.mean()) * np.hanning(part.size), nfft)) ** 2
+                     / max(float(np.sum(np.hanning(part.size) ** 2)), 1e-300) for part in runs.split(x)], axis=0)
     med = ndimage.median_filter(p, size=2 * half_width + 1, mode="nearest")
     return p / np.maximum(med, 1e-300 + 1e-12 * float(np.max(p)))
 
 
-def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = LEVEL) -> LineTest:
+def _line_threshold(n: int, level: float, averaged: int) -> float:
+    """The Bonferroni level over the ~n/2 bins of the periodogram / median ratio: for Gaussian
+    noise a periodogram is Exp(1)-distributed (its median ln 2), an average of ``averaged`` ones
+    Gamma(averaged, 1/averaged)."""
+    if averaged == 1:
+        return float(np.log(0.5 * n / (1.0 - level)) / np.log(2.0))
+    gamma = stats.gamma(averaged, scale=1.0 / averaged)
+    return float(gamma.isf((1.0 - level) / (0.5 * n)) / gamma.median())
+
+
+def run_indicators(runs: Runs) -> np.ndarray:
+    """Column r is 1 on the samples of run r, 0 elsewhere (a constant per run)."""
+    label = np.repeat(np.arange(runs.count), runs.lengths)
+    return (label[:, None] == np.arange(runs.count)[None, :]).astype(float)
+
+
+def run_waves(frequencies: np.ndarray, runs: Runs) -> np.ndarray:
+    """Columns cos(w k), sin(w k) for every frequency w, k the sample within its run, a pair per
+    run (zero outside it): a sinusoid with every run's own phase and amplitude. Order: frequency,
+    run, cos/sin."""
+    local = np.arange(runs.total) - np.repeat(np.asarray(runs.starts, dtype=int), runs.lengths)
+    inside = run_indicators(runs)
+    return np.column_stack([f(w * local) * inside[:, r] for w in frequencies for r in range(runs.count)
+                            for f in (np.cos, np.sin)] or [np.zeros((runs.total, 0))])
+
+
+def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = LEVEL,
+                   runs: Runs | None = None) -> LineTest:
     """Peaks of the residual periodogram above the Bonferroni level of its running median
     (for Gaussian noise, periodogram / median ~ Exp(1) / ln 2 in each of the ~N/2 bins), at
-    frequencies where no reference signal (input, simulated output) has a line."""
-    n = e.size
+    frequencies where no reference signal (input, simulated output) has a line. With several
+    ``runs`` (of e and the references) the periodograms are Bartlett's average of the runs' own
+    (``_line_ratio``: a disturbance keeps its frequency but has its own phase in every run; the
+    grid that of the longest run) and the share explained is that of sinusoids with a phase per run."""
+    runs = several(runs)
+    n = e.size if runs is None else int(runs.lengths.max())
     pad = 4
     nfft = pad * int(2 ** np.ceil(np.log2(n)))
     bins_per_natural = nfft / n
     half = int(32 * bins_per_natural)
-    ratio = _line_ratio(e, nfft, half)
-    threshold = float(np.log(0.5 * n / (1.0 - level)) / np.log(2.0))
+    ratio = _line_ratio(e, nfft, half, runs)
+    threshold = _line_threshold(n, level, 1 if runs is None else runs.count)
     grid = 2 * np.pi * np.arange(ratio.size) / nfft
     lobe = int(np.ceil(3 * bins_per_natural))
-    reference_lines = np.concatenate([_peaks(_line_ratio(r, nfft, half), threshold, lobe) for r in references])
+    reference_lines = np.concatenate([_peaks(_line_ratio(r, nfft, half, runs), threshold, lobe) for r in references])
     candidates = _peaks(ratio, threshold, lobe)
     # a reference line within one DFT bin (2 pi / N) is the same line
     distinct = [f for f in candidates if not np.any(np.abs(reference_lines - f) < 2 * np.pi / n)]
@@ -293,10 +330,14 @@ def spectral_lines(e: np.ndarray, references: list[np.ndarray], level: float = L
     peaks = np.array([int(round(f * nfft / (2 * np.pi))) for f in frequencies], dtype=int)
     explained = 0.0
     if frequencies.size:
-        k = np.arange(n)
-        basis = np.column_stack([np.ones(n)] + [f(w * k) for w in frequencies for f in (np.cos, np.sin)])
+        if runs is None:
+            k = np.arange(n)
+            basis = np.column_stack([np.ones(n)] + [f(w * k) for w in frequencies for f in (np.cos, np.sin)])
+        else:
+            basis = np.column_stack([run_indicators(runs), run_waves(frequencies, runs)])
         fit = basis @ solve_least_squares(basis, e)
-        e0 = e - e.mean()
+        e0 = e - e.mean() if runs is None else e - basis[:, : runs.count] @ solve_least_squares(
+            basis[:, : runs.count], e)
         explained = max(0.0, 1.0 - float(np.sum((e - fit) ** 2)) / float(np.sum(e0**2)))
     strongest = float(ratio[peaks[0]]) if peaks.size else float(np.max(ratio[3 * lobe :]))
     return LineTest(frequencies, strongest, threshold, explained, ratio, grid)

@@ -16,29 +16,38 @@ def extend_time_varying(ctx: Context) -> ExtendedModel:
     """Sliding-window re-identification: the validation record is simulated block by block,
     each block with the baseline re-fitted (A, B and the map's offset; the map's shape kept)
     on the last ``window`` measured samples before it, the state carried over from the
-    simulated output. Reports the window test's change point or drift rate."""
+    simulated output. Reports the window test's change point or drift rate. With several
+    validation runs every run is simulated on its own from rest (``Split.validation_output``),
+    and its windows and carried state stay inside it."""
     base, s = ctx.baseline, ctx.split
     v_all = s.v_all if s.continuous else s.v_val
     y_all = s.y_all if s.continuous else s.y_val
     start = s.n_est if s.continuous else 0
     n_val = s.v_val.size
+    runs = s.val_runs
     free = base.order + np.count_nonzero(base.b) + 1
-    window = int(np.clip(n_val // 3, 30 * free, 6000))
+    window = int(np.clip(int(runs.lengths.max()) // 3, 30 * free, 6000))
     window = min(window, start) if start else window
     if window < 20 * free:
         raise NotFitted(f"windows of the baseline's {free} parameters need {20 * free} samples; there are {window}")
+    if window >= int(runs.lengths.max()) and runs.count > 1:
+        raise NotFitted(f"windows of {window} samples do not fit in validation runs of {int(runs.lengths.max())}")
     block = max(window // 4, 10)
     u_all = base.static(v_all)
     out = s.validation_output(base.simulate)  # kept until a first window of measured data exists
-    model = base
     history_y = base.simulate(v_all[:start]) if start else np.zeros(0)
-    for k0 in range(start, start + n_val, block):
-        if k0 - window < 0:
-            continue
-        k1 = min(k0 + block, start + n_val)
-        model = _refit_window(model, base, u_all[k0 - window : k0], y_all[k0 - window : k0])
-        y_past = np.concatenate([history_y, out[: k0 - start]])
-        out[k0 - start : k1 - start] = _continue(model, u_all + (model.kappa - base.kappa), y_past, k0, k1)
+    # a window reaches back to the record's start (one run), else to its own run's first sample
+    segments = [(start, start + n_val, 0)] if runs.count == 1 else [(a, int(b), a) for a, b in zip(runs.starts,
+                                                                                                  runs.ends)]
+    for first, stop, floor in segments:
+        model = base  # every run's re-fits start from the baseline
+        for k0 in range(first, stop, block):
+            if k0 - window < floor:
+                continue
+            k1 = min(k0 + block, stop)
+            model = _refit_window(model, base, u_all[k0 - window : k0], y_all[k0 - window : k0])
+            y_past = np.concatenate([history_y, out[: k0 - start]]) if runs.count == 1 else out[floor:k0]
+            out[k0 - start : k1 - start] = _continue(model, u_all + (model.kappa - base.kappa), y_past, k0, k1)
     details = {"window": window, "block": block}
     if ctx.windows.change_point is not None:
         details["change_point"] = int(ctx.windows.change_point)

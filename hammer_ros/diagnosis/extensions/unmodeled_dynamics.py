@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import IdentificationError
+from ...identification.runs import several
 from ..hammerstein import SELECTION_SAMPLES, bic, fit_hammerstein, refine_hammerstein
+from ..split import runs_tail
 from .common import Context, ExtendedModel, NotFitted, order_details
 
 MAX_EXTRA_ORDER = 4
@@ -18,19 +20,22 @@ def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel:
     (its last SELECTION_SAMPLES samples; the chosen model is then refined on all of them),
     if it beats the baseline's. Besides the PLLS start, each order is started from the
     baseline's denominator times a few extra modes (``_extra_modes``): a slow or a resonant
-    mode the equation-error start tends to miss."""
+    mode the equation-error start tends to miss. With several estimation runs every fit and
+    simulation takes each run on its own, from rest at its first input."""
     base, s = ctx.baseline, ctx.split
-    v, y = s.v_est[-SELECTION_SAMPLES:], s.y_est[-SELECTION_SAMPLES:]
+    tail, runs = runs_tail(several(s.runs_est), s.n_est, SELECTION_SAMPLES)
+    v, y = s.v_est[tail], s.y_est[tail]
     skip = min(ctx.skip, v.size // 5)
-    best, best_score = None, bic(y[skip:], base.simulate(v)[skip:], base.parameter_count())
+    best, best_score = None, bic(y[skip:], base.simulate_runs(v, runs)[skip:], base.parameter_count())
     misses = 0
     for order in range(base.order + 1, min(base.order + MAX_EXTRA_ORDER, MAX_ORDER) + 1):
         starts = tuple(np.convolve(base.a, extra) for extra in _extra_modes(order - base.order))
         try:
-            model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False, denominators=starts)
+            model = fit_hammerstein(v, y, order, base.delay, base.partition, free_knots=False, denominators=starts,
+                                    runs=runs)
         except (IdentificationError, np.linalg.LinAlgError, ValueError):
             continue
-        score = bic(y[skip:], model.simulate(v)[skip:], model.parameter_count())
+        score = bic(y[skip:], model.simulate_runs(v, runs)[skip:], model.parameter_count())
         if score < best_score:
             best, best_score, misses = model, score, 0
         else:
@@ -40,7 +45,7 @@ def extend_unmodeled_dynamics(ctx: Context) -> ExtendedModel:
     if best is None:
         raise NotFitted(f"no order from {base.order + 1} up lowers the baseline's simulation-error BIC")
     if v.size < s.n_est:
-        best = refine_hammerstein(best, s.v_est, s.y_est, iterations=15)
+        best = refine_hammerstein(best, s.v_est, s.y_est, iterations=15, runs=several(s.runs_est))
     return ExtendedModel("unmodeled_dynamics", f"hammerstein order {best.order}", s.validation_output(best.simulate),
                          order_details(best), simulate=best.simulate)
 
