@@ -24,7 +24,7 @@ from .errors import UsageError
 from .identification.methods import IdentifyOptions
 from .identification.methods import identify as identify_with
 from .identification.result import IdentificationResult
-from .identification.runs import Runs
+from .identification.runs import Runs, several
 from .identification.trust import ModelWarning
 from .io.records import Record
 
@@ -147,10 +147,9 @@ class Model:
         record = self.record
         if record.r is not None:
             return record.warnings
-        runs = record.runs or Runs.one(len(record))
-        with np.errstate(all="ignore"):
-            residual = record.y - runs.simulate(self.result.simulate, record.v)
-        return (*record.warnings, *closed_loop_warnings(record.v, residual))
+        with np.errstate(all="ignore"):  # the residual of the free run the fit is measured on
+            residual = record.y - self.result.free_run(record.v, record.y, record.runs)
+        return (*record.warnings, *closed_loop_warnings(record.v, residual, several(record.runs)))
 
     def to_dict(self) -> dict:
         """The ``hammer-ros identify --json`` document: the model, its bounds, fit and rms on its record."""

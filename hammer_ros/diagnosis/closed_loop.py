@@ -98,14 +98,14 @@ def closed_loop_evidence(u: np.ndarray, residual: np.ndarray, max_lag: int = MAX
     return Evidence(TEST_NAME, value, bound, value <= bound, note=note)
 
 
-def closed_loop_warnings(v: np.ndarray, residual: np.ndarray) -> tuple[ModelWarning, ...]:
+def closed_loop_warnings(v: np.ndarray, residual: np.ndarray, runs: Runs | None = None) -> tuple[ModelWarning, ...]:
     """``closed_loop`` (``identification.trust``) when ``closed_loop_evidence`` fails on a model's
-    free-run residual. Not for short records, nor for a trajectory (``trust.is_trajectory``): the
-    test prewhitens the input as a random process, and a planned motion's future follows from its
-    past, so a model error alone would fail it."""
+    free-run residual (``runs``: within each run). Not for short records, nor for a trajectory
+    (``trust.is_trajectory``): the test prewhitens the input as a random process, and a planned
+    motion's future follows from its past, so a model error alone would fail it."""
     v, residual = np.asarray(v, dtype=float), np.asarray(residual, dtype=float)
     if v.size < 200 or not np.all(np.isfinite(residual)) or is_trajectory(v):
         return ()
     with np.errstate(all="ignore"):
-        evidence = closed_loop_evidence(v, residual)
+        evidence = closed_loop_evidence(v, residual, runs=runs)
     return () if evidence.passed else (closed_loop_warning(evidence.value, evidence.bound),)
