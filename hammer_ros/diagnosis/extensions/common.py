@@ -105,7 +105,7 @@ class Context:
         base, s = self.baseline, self.split
         try:
             return fit_wiener_hammerstein(s.v_est, s.y_est, base.order, base.delay, segments=self.map_segments,
-                                          direct_term=True, runs=s.runs_est)
+                                          direct_term=True, runs=self.runs)
         except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
             return error
 
@@ -127,7 +127,7 @@ class Context:
         def fit(front: LinearModel | None, iterations: int = 200) -> WienerHammersteinFit:
             bla = fits[0].bla if fits else None  # computed once, by the first fit
             return fit_nested_wiener(s.v_est, s.y_est, base.order, base.delay, self.map_segments, iterations,
-                                     front, bla, s.runs_est)
+                                     front, bla, self.runs)
 
         given = np.inf  # the smallest start error of the BLA and L-N-L starts
         for front in fronts:
