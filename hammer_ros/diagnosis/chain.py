@@ -232,7 +232,7 @@ def follow_parallel_path(split: Split, model: ExtendedModel, skip: int) -> Exten
     """y = M(u) + G[u], G of order 2 (paper 003's feedforward structure around M)."""
     inner, v = model.simulate, split.v_est
     x = split.estimation_output(inner)
-    b0, a0 = linear_fit(v, split.y_est - x, 2, 0)
+    b0, a0 = linear_fit(v, split.y_est - x, 2, 0, split.runs_est)
     b, a = _filter_refined(v, split.y_est, b0, a0, x, skip, split.runs_est)
 
     def simulate(u: np.ndarray) -> np.ndarray:

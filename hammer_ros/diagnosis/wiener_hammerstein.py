@@ -33,7 +33,9 @@ problem", Control Eng. Practice 20(11)):
 
 Every filter starts from the steady state of its first input value (the record starts at
 rest at u(0)), and so do the Jacobian's filtered signals, so the Jacobian is that of the
-simulation itself. The normal equations J^T J, J^T r are formed by a numba loop (numpy without
+simulation itself. A record of several runs (``runs``: separate experiments) is simulated,
+filtered and lagged run by run, every run from rest at its first input; the costs sum over
+the runs. The normal equations J^T J, J^T r are formed by a numba loop (numpy without
 numba). Settings depend on the record's length only: map segments clip(N / 250, 4, 20), the
 splits scored on the last SCAN_SAMPLES samples, the KEEP_SPLITS best refined 15 iterations
 each, the best one up to 200.
@@ -60,8 +62,10 @@ from ..identification.piecewise_linear_ls import (
     point_slope_map,
 )
 from ..identification.regression import build_regression, solve_least_squares
+from ..identification.runs import Runs, per_run, several
 from ..identification.simulation_error import settling_samples, stabilised_denominator
 from ..identification.static_maps import PiecewiseLinearMap
+from .split import runs_tail
 
 MAX_SEGMENTS = 20
 SAMPLES_PER_SEGMENT = 250
@@ -129,6 +133,29 @@ def _filter(b: np.ndarray, a: np.ndarray, s: np.ndarray) -> np.ndarray:
     state = np.cumsum((b[1:] - a[1:] * gain)[::-1])[::-1] / a[0]
     zi = state * s[0] if s.ndim == 1 else s[:, :1] * state[None, :]
     return signal.lfilter(b, a, s, axis=-1, zi=zi)[0]
+
+
+def _filter_runs(b: np.ndarray, a: np.ndarray, s: np.ndarray, runs: Runs | None) -> np.ndarray:
+    """``_filter`` started anew at every run (samples along the last axis)."""
+    if runs is None:
+        return _filter(b, a, s)
+    return np.concatenate([_filter(b, a, s[..., piece]) for piece in runs.slices()], axis=-1)
+
+
+def _run_evaluator(make, u: np.ndarray, runs: Runs | None):
+    """``make(u)``, an ``evaluate(theta, jacobian)`` of ``_levenberg_marquardt`` on one record,
+    or with ``runs`` the evaluators of every run joined: outputs and Jacobian columns concatenated
+    along the samples (every run simulated from rest at its first input)."""
+    if runs is None:
+        return make(u)
+    evaluators = [make(part) for part in runs.split(u)]
+
+    def evaluate(theta: np.ndarray, jacobian: bool):
+        parts = [e(theta, jacobian) for e in evaluators]
+        return (np.concatenate([p[0] for p in parts]),
+                np.concatenate([p[1] for p in parts], axis=1) if jacobian else None)
+
+    return evaluate
 
 
 def _held(s: np.ndarray, lags: np.ndarray) -> np.ndarray:
@@ -234,15 +261,20 @@ def _stable(a: np.ndarray, margin: float = 0.9995) -> np.ndarray | None:
 
 
 def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0,
-                     iterations: int = 60) -> LinearModel:
+                     iterations: int = 60, runs: Runs | None = None) -> LinearModel:
     """The linear output-error model y = B/A u + c of the given order and relative degree
     (numerator b_delay..b_order): Steiglitz-McBride from ARX, then Levenberg-Marquardt on the
-    simulation error (analytic Jacobian: dy/db_j = q^-j u/A, dy/da_j = -q^-j y/A)."""
+    simulation error (analytic Jacobian: dy/db_j = q^-j u/A, dy/da_j = -q^-j y/A). ``runs``:
+    every prefilter, regressor and simulation within one run."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    runs = several(runs)
     a = np.ones(1)
     for _ in range(5):  # Steiglitz-McBride: ARX on the data prefiltered by 1/A
-        reg = build_regression(signal.lfilter([1.0], a, y), signal.lfilter([1.0], a, u), order, delay)
-        ones = signal.lfilter([1.0], a, np.ones(u.size))[reg.rows]
+        def prefiltered(x: np.ndarray, a: np.ndarray = a) -> np.ndarray:
+            return per_run(lambda part: signal.lfilter([1.0], a, part), x, runs)
+
+        reg = build_regression(prefiltered(y), prefiltered(u), order, delay, runs=runs)
+        ones = prefiltered(np.ones(u.size))[reg.rows]
         theta = solve_least_squares(np.column_stack([reg.phi, ones]), reg.target)
         a_coef, b_coef = reg.split(theta[:-1])
         a = stabilised_denominator(np.concatenate([[1.0], a_coef]))
@@ -255,22 +287,25 @@ def fit_output_error(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0,
         bb[lags] = theta[order : order + lags.size]
         return np.concatenate([[1.0], theta[:order]]), bb, theta[-1]
 
-    def evaluate(theta, jacobian):
-        aa, bb, c = unpack(theta)
-        out = _filter(bb, aa, u)
-        if not jacobian:
-            return out + c, None
-        du = _held(_filter([1.0], aa, u), lags)
-        dy = -_held(_filter([1.0], aa, out), np.arange(1, order + 1))
-        return out + c, np.vstack([dy, du, np.ones((1, u.size))])
+    def evaluator(u: np.ndarray):
+        def evaluate(theta, jacobian):
+            aa, bb, c = unpack(theta)
+            out = _filter(bb, aa, u)
+            if not jacobian:
+                return out + c, None
+            du = _held(_filter([1.0], aa, u), lags)
+            dy = -_held(_filter([1.0], aa, out), np.arange(1, order + 1))
+            return out + c, np.vstack([dy, du, np.ones((1, u.size))])
+
+        return evaluate
 
     def project(theta):
         aa = _stable(np.concatenate([[1.0], theta[:order]]))
         return None if aa is None else np.concatenate([aa[1:], theta[order:]])
 
-    offset = float(np.mean(y - _filter(b, a, u)))
-    theta, _ = _levenberg_marquardt(evaluate, project, np.concatenate([a[1:], b[lags], [offset]]), y, skip,
-                                    iterations)
+    offset = float(np.mean(y - _filter_runs(b, a, u, runs)))
+    theta, _ = _levenberg_marquardt(_run_evaluator(evaluator, u, runs), project,
+                                    np.concatenate([a[1:], b[lags], [offset]]), y, skip, iterations)
     aa, bb, _ = unpack(theta)
     return LinearModel(bb, aa)
 
@@ -368,19 +403,20 @@ def _partition(x: np.ndarray, segments: int) -> np.ndarray:
 
 
 def _map_start(x: np.ndarray, y: np.ndarray, back: LinearModel, segments: int,
-               skip: int) -> tuple[np.ndarray, int, np.ndarray, float, float]:
+               skip: int, runs: Runs | None = None) -> tuple[np.ndarray, int, np.ndarray, float, float]:
     """(partition, primary, slopes, kappa, cost): the map on ``segments`` quantile intervals of
     x, fitted by least squares through ``back`` (``_map_fit``)."""
     partition = _partition(x, segments)
     primary = max(1, partition.size // 2)
-    return (partition, primary, *_map_fit(x, y, back, partition, primary, skip))
+    return (partition, primary, *_map_fit(x, y, back, partition, primary, skip, runs))
 
 
 def _map_fit(x: np.ndarray, y: np.ndarray, back: LinearModel, partition: np.ndarray, primary: int,
-             skip: int) -> tuple[np.ndarray, float, float]:
-    """(slopes, kappa, cost): y ~ G2[eta(x)] mu + G2(1) kappa by least squares."""
+             skip: int, runs: Runs | None = None) -> tuple[np.ndarray, float, float]:
+    """(slopes, kappa, cost): y ~ G2[eta(x)] mu + G2(1) kappa by least squares (``runs``: G2
+    from rest at every run's start)."""
     basis = np.vstack([point_slope_basis(x, partition, primary).T, np.ones((1, x.size))])
-    columns = _filter(back.b, back.a, basis)[:, skip:]
+    columns = _filter_runs(back.b, back.a, basis, runs)[:, skip:]
     gram, vector = _normal_equations(columns, y[skip:])
     theta = np.linalg.solve(gram + 1e-12 * np.trace(gram) * np.eye(gram.shape[0]), vector)
     r = y[skip:] - theta @ columns
@@ -483,7 +519,7 @@ class WienerHammersteinFit:
 def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0,
                            segments: int | None = None, keep: int = KEEP_SPLITS, iterations: int = 200,
                            scout_iterations: int = 15, full_order: bool = True,
-                           direct_term: bool = False) -> WienerHammersteinFit:
+                           direct_term: bool = False, runs: Runs | None = None) -> WienerHammersteinFit:
     """Wiener-Hammerstein model of total order ``order`` (the BLA's) on (u, y): BLA, scan of
     the pole/zero splits with the map by least squares, joint Levenberg-Marquardt refinement
     of the ``keep`` best splits (``scout_iterations`` each, both blocks of order ``order``),
@@ -494,30 +530,32 @@ def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     the map (default from the record's length, ``map_segments``). ``full_order`` False: each
     block keeps its split's order (n poles in all, the structure of a Hammerstein model of order
     n; for comparisons of structures), which stalls well above the full-order optimum on long
-    records."""
+    records. ``runs``: every filter and simulation run by run (the module's docstring)."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
+    runs = several(runs)
     if order < 1:
         raise IdentificationError("a Wiener-Hammerstein model needs an order of at least 1")
     if direct_term and delay > 0:
-        fits = [fit_wiener_hammerstein(u, y, order, d, segments, keep, iterations, scout_iterations, full_order)
-                for d in (delay, 0)]
+        fits = [fit_wiener_hammerstein(u, y, order, d, segments, keep, iterations, scout_iterations, full_order,
+                                       runs=runs) for d in (delay, 0)]
         return min(fits, key=lambda fit: fit.rms)
-    bla = fit_output_error(u, y, order, delay)
+    bla = fit_output_error(u, y, order, delay, runs=runs)
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
-    scan = slice(max(0, u.size - SCAN_SAMPLES), None)
+    scan, scan_runs = runs_tail(runs, u.size, SCAN_SAMPLES)
+    scan_runs = several(scan_runs)
     u_scan, y_scan = u[scan], y[scan]
     scan_skip = min(skip, u_scan.size // 5)
     scored = []
     for front, back in splits(bla):
-        x = _filter(front.b, front.a, u_scan)
+        x = _filter_runs(front.b, front.a, u_scan, scan_runs)
         scale = float(np.std(u_scan)) / max(float(np.std(x)), 1e-300)
         if not np.isfinite(scale) or scale == 0.0:
             continue
         front = front.scaled(scale)
         x = x * scale
         try:
-            *_, cost = _map_start(x, y_scan, back, segments, scan_skip)
+            *_, cost = _map_start(x, y_scan, back, segments, scan_skip, scan_runs)
         except IdentificationError:
             continue
         scored.append((cost, front, back))
@@ -526,37 +564,38 @@ def fit_wiener_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int 
     scored.sort(key=lambda s: s[0])
     best = None
     for _, front, back in scored[:keep]:
-        x = _filter(front.b, front.a, u)
+        x = _filter_runs(front.b, front.a, u, runs)
         try:
-            partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip)
+            partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip, runs)
         except IdentificationError:
             continue
         params = _Parameters(front, back, order, delay, partition, primary, full_order)
-        theta, cost = _levenberg_marquardt(params.evaluator(u), params.project,
+        theta, cost = _levenberg_marquardt(_run_evaluator(params.evaluator, u, runs), params.project,
                                            params.pack(front, back, mu, kappa), y, skip, scout_iterations)
         if best is None or cost < best[0]:
             best = (cost, params, theta)
     if best is None:
         raise IdentificationError("no split of the best linear approximation could be refined")
     _, params, theta = best
-    theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, theta, y, skip, iterations)
+    theta, cost = _levenberg_marquardt(_run_evaluator(params.evaluator, u, runs), params.project, theta, y, skip,
+                                       iterations)
     model = params.model(theta)
     rms = float(np.sqrt(cost / max(y.size - skip, 1)))
     return WienerHammersteinFit(model, bla, tuple(s[0] for s in scored), rms, segments, delay)
 
 
 def fit_nested_hammerstein(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0, segments: int | None = None,
-                           iterations: int = 200) -> WienerHammersteinFit:
+                           iterations: int = 200, runs: Runs | None = None) -> WienerHammersteinFit:
     """The Hammerstein model nested in the L-N-L structure, G1 = 1: G2 of ``order`` started from
     the BLA, the map on quantiles of u (``segments``), refined by the same Levenberg-Marquardt
     on the simulation error as ``fit_wiener_hammerstein``. The yardstick of the input-dynamics
     extension: what the L-N-L model gains over it is the front filter's, not a better optimiser's."""
-    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=False)
+    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=False, runs=runs)
 
 
 def fit_nested_wiener(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0, segments: int | None = None,
                       iterations: int = 200, front: LinearModel | None = None,
-                      bla: LinearModel | None = None) -> WienerHammersteinFit:
+                      bla: LinearModel | None = None, runs: Runs | None = None) -> WienerHammersteinFit:
     """The Wiener model nested in the L-N-L structure, G2 = 1: y = f(G1[u]), G1 started from
     ``front`` or else from the BLA of ``order`` (Bussgang: the BLA of a Wiener system is c G1;
     an even map makes it vanish, hence the other start), scaled to the input's spread, the map
@@ -564,32 +603,33 @@ def fit_nested_wiener(u: np.ndarray, y: np.ndarray, order: int, delay: int = 0, 
     output map (a sensor, a rectifier, a clamp after the plant): what the L-N-L model gains over
     it is the back filter's. ``bla``: the BLA when already known (it also sets the samples
     left out as the transient, so fits from several fronts compare on the same samples)."""
-    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=True, front=front, bla=bla)
+    return _fit_nested(u, y, order, delay, segments, iterations, dynamics_first=True, front=front, bla=bla, runs=runs)
 
 
 def _fit_nested(u: np.ndarray, y: np.ndarray, order: int, delay: int, segments: int | None, iterations: int,
-                dynamics_first: bool, front: LinearModel | None = None,
-                bla: LinearModel | None = None) -> WienerHammersteinFit:
+                dynamics_first: bool, front: LinearModel | None = None, bla: LinearModel | None = None,
+                runs: Runs | None = None) -> WienerHammersteinFit:
     """The L-N-L model with one block the identity and the other the BLA (or ``front``),
-    refined (see the two callers)."""
+    refined (see the two callers; ``runs``: run by run)."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
-    bla = fit_output_error(u, y, order, delay) if bla is None else bla
+    runs = several(runs)
+    bla = fit_output_error(u, y, order, delay, runs=runs) if bla is None else bla
     segments = segments or map_segments(u.size)
     skip = min(settling_samples(bla.poles, cap=u.size // 5), u.size // 5)
     identity = LinearModel(np.ones(1), np.ones(1))
     if dynamics_first:
         block = bla if front is None else front
-        x = _filter(block.b, block.a, u)
+        x = _filter_runs(block.b, block.a, u, runs)
         scale = float(np.std(u)) / max(float(np.std(x)), 1e-300)
         if not np.isfinite(scale) or scale == 0.0:
             raise IdentificationError("the linear block is zero: no start for the Wiener model")
         front, back = block.scaled(scale), identity
     else:
         front, back = identity, bla
-    x = _filter(front.b, front.a, u)
-    partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip)
+    x = _filter_runs(front.b, front.a, u, runs)
+    partition, primary, mu, kappa, _ = _map_start(x, y, back, segments, skip, runs)
     params = _Parameters(front, back, order, delay, partition, primary, full_order=False)
-    theta, cost = _levenberg_marquardt(params.evaluator(u), params.project, params.pack(front, back, mu, kappa), y,
-                                       skip, iterations)
+    theta, cost = _levenberg_marquardt(_run_evaluator(params.evaluator, u, runs), params.project,
+                                       params.pack(front, back, mu, kappa), y, skip, iterations)
     rms = float(np.sqrt(cost / max(y.size - skip, 1)))
     return WienerHammersteinFit(params.model(theta), bla, (), rms, segments, delay)

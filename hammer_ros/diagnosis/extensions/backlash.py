@@ -24,18 +24,23 @@ def _same_levels(v: np.ndarray, knots: np.ndarray, z: np.ndarray) -> np.ndarray:
 def extend_backlash(ctx: Context) -> ExtendedModel:
     """y = G[F(P_w(v))]: the play width w from a grid and a bounded scalar search on the
     simulation error with G fixed at the baseline's (F re-fitted by least squares for each w),
-    then the Hammerstein model on P_w(v) refined as the baseline is."""
+    then the Hammerstein model on P_w(v) refined as the baseline is. Every run on its own on a
+    record of several runs (the play operator and G from rest at the run's first input)."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
 
+    def played(width: float) -> np.ndarray:
+        return ctx.estimation_simulation(lambda u: play_operator(u, width))
+
     def cost(width: float) -> float:
-        z = play_operator(v, width)
+        z = played(width)
         try:
             partition = _same_levels(v, base.partition, z)
         except IdentificationError:
             return np.inf
         columns = np.column_stack([point_slope_basis(z, partition, max(1, partition.size // 2)), np.ones(z.size)])
-        filtered = np.column_stack([steady_state_filter(base.b, base.a, c) for c in columns.T])
+        filtered = ctx.estimation_simulation(
+            lambda part: np.column_stack([steady_state_filter(base.b, base.a, c) for c in part.T]), columns)
         theta = solve_least_squares(filtered[skip:], y[skip:])
         return float(np.sum((y[skip:] - filtered[skip:] @ theta) ** 2))
 
@@ -48,8 +53,8 @@ def extend_backlash(ctx: Context) -> ExtendedModel:
     lo, hi = grid[i - 1], grid[min(i + 1, grid.size - 1)]
     found = minimize_scalar(cost, bounds=(lo, hi), method="bounded", options={"xatol": 0.01 * scale, "maxiter": 12})
     width = float(found.x) if found.fun < costs[i] else float(grid[i])
-    z = play_operator(v, width)
-    model = fit_hammerstein(z, y, base.order, base.delay, _same_levels(v, base.partition, z))
+    z = played(width)
+    model = fit_hammerstein(z, y, base.order, base.delay, _same_levels(v, base.partition, z), runs=ctx.runs)
 
     def simulate(u: np.ndarray) -> np.ndarray:
         return model.simulate(play_operator(u, width))

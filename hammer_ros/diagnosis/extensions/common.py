@@ -12,6 +12,7 @@ import numpy as np
 
 from ...errors import IdentificationError
 from ...identification.linear import LinearModel
+from ...identification.runs import Runs, per_run, several
 from ..evidence import LineTest, WindowTest
 from ..hammerstein import HammersteinModel, transient_samples
 from ..split import Split
@@ -67,7 +68,10 @@ class ExtendedModel:
 
 @dataclass(frozen=True, eq=False)
 class Context:
-    """What every extension may use: the data, the baseline, the line and window tests."""
+    """What every extension may use: the data, the baseline, the line and window tests. The
+    estimation fits treat the estimation runs (``split.runs_est``) as separate experiments: every
+    simulation, filter and regressor run by run, each run from rest at its first input
+    (``per_run``, ``estimation_simulation``)."""
 
     split: Split
     baseline: HammersteinModel
@@ -77,6 +81,17 @@ class Context:
     @property
     def skip(self) -> int:
         return transient_samples(self.baseline.linear.poles, self.split.n_est)
+
+    @property
+    def runs(self) -> Runs | None:
+        """The estimation part's runs when it holds several, else None (the one-record path)."""
+        return several(self.split.runs_est)
+
+    def estimation_simulation(self, simulate: Callable[[np.ndarray], np.ndarray],
+                              v: np.ndarray | None = None) -> np.ndarray:
+        """simulate on the estimation input (or ``v``, a signal over the estimation samples), every
+        run on its own from rest at its first input: the output a fit's cost compares with y_est."""
+        return per_run(simulate, self.split.v_est if v is None else v, self.runs)
 
     @property
     def map_segments(self) -> int:
@@ -90,7 +105,7 @@ class Context:
         base, s = self.baseline, self.split
         try:
             return fit_wiener_hammerstein(s.v_est, s.y_est, base.order, base.delay, segments=self.map_segments,
-                                          direct_term=True)
+                                          direct_term=True, runs=self.runs)
         except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
             return error
 
@@ -112,7 +127,7 @@ class Context:
         def fit(front: LinearModel | None, iterations: int = 200) -> WienerHammersteinFit:
             bla = fits[0].bla if fits else None  # computed once, by the first fit
             return fit_nested_wiener(s.v_est, s.y_est, base.order, base.delay, self.map_segments, iterations,
-                                     front, bla)
+                                     front, bla, self.runs)
 
         given = np.inf  # the smallest start error of the BLA and L-N-L starts
         for front in fronts:

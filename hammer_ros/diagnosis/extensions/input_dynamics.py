@@ -28,13 +28,14 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
     the Wiener model nested in it (G2 = 1, ``Context.nested_wiener``), and G2 must be more than a
     gain once its near-cancelling pole/zero pairs are dropped (``essential_order``): when all the
     dynamics are before the map, the L-N-L model is a Wiener model in disguise (y = |G u| is fitted
-    with G2 a gain times a cancelling pair), and the extension suggests ``output_nonlinearity``."""
+    with G2 a gain times a cancelling pair), and the extension suggests ``output_nonlinearity``.
+    Every fit run by run on a record of several runs (``Context``)."""
     base, s = ctx.baseline, ctx.split
     fit = ctx.wiener_hammerstein
     try:
         if isinstance(fit, Exception):
             raise fit
-        nested = fit_nested_hammerstein(s.v_est, s.y_est, base.order, fit.delay, fit.segments)
+        nested = fit_nested_hammerstein(s.v_est, s.y_est, base.order, fit.delay, fit.segments, runs=ctx.runs)
     except (IdentificationError, np.linalg.LinAlgError, ValueError) as error:
         raise NotFitted(f"Wiener-Hammerstein: {error}") from error
     model = fit.model
@@ -54,7 +55,7 @@ def extend_input_dynamics(ctx: Context) -> ExtendedModel:
             raise NotFitted(f"the Wiener model nested in it (G2 = 1), refined the same way, fits the validation data "
                             f"as well (x{wiener_ratio:.3f}): the map sits after the dynamics (an output map)",
                             suggests="output_nonlinearity")
-    x = model.intermediate(s.v_est)
+    x = ctx.estimation_simulation(model.intermediate)
     details = {"order": base.order, "delay": fit.delay, "gain_over_nested_hammerstein": ratio,
                **model.to_json((float(np.min(x)), float(np.max(x))))}
     maps = (map_plot("f (between G1 and G2)", model.nonlinearity, x),

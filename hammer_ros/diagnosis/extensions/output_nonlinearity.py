@@ -25,16 +25,16 @@ def extend_output_nonlinearity(ctx: Context) -> ExtendedModel:
     F linear), started from the best linear approximation and from the L-N-L fit's G1; where the
     output map is not invertible (a rectifier, a clamp) the Hammerstein baseline is a poor start
     and the Wiener fit is the one that finds the map. The one with the smaller simulation error
-    on the estimation data is kept."""
+    on the estimation data is kept. Every fit run by run on a record of several runs (``Context``)."""
     hammerstein_wiener = _hammerstein_wiener(ctx)
     wiener = ctx.nested_wiener
     if isinstance(wiener, Exception):
         return hammerstein_wiener
     s, skip = ctx.split, ctx.skip
-    if rms_error(s.y_est[skip:], hammerstein_wiener.simulate(s.v_est)[skip:]) <= wiener.rms:
+    if rms_error(s.y_est[skip:], ctx.estimation_simulation(hammerstein_wiener.simulate)[skip:]) <= wiener.rms:
         return hammerstein_wiener
     model = wiener.model
-    x = model.intermediate(s.v_est)
+    x = ctx.estimation_simulation(model.intermediate)
     details = {"order": model.front.order, "delay": model.front.delay,
                "poles": [[float(p.real), float(p.imag)] for p in model.front.poles],
                "wiener": model.to_json((float(np.min(x)), float(np.max(x))))}
@@ -47,7 +47,7 @@ def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
     """The Hammerstein-Wiener model from the baseline (``extend_output_nonlinearity``)."""
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
-    x = base.simulate(v)
+    x = ctx.estimation_simulation(base.simulate)
     partition = quantile_partition(x[skip:], OUTPUT_MAP_BREAKPOINTS)
     primary = max(1, partition.size // 2)
     zeta = point_slope_basis(x, partition, primary)
@@ -61,7 +61,7 @@ def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
 
     def simulate_theta(theta: np.ndarray) -> np.ndarray:
         m = params.unpack(theta[:size])
-        inner = steady_state_filter(m.b, m.a, eta @ m.slopes + m.kappa)
+        inner = ctx.estimation_simulation(lambda w: steady_state_filter(m.b, m.a, w), eta @ m.slopes + m.kappa)
         return point_slope_basis(inner, partition, primary) @ theta[size:-1] + theta[-1]
 
     theta = refine(simulate_theta, np.concatenate([params.pack(base), init]), y, 40, skip)
@@ -70,7 +70,7 @@ def _hammerstein_wiener(ctx: Context) -> ExtendedModel:
     def simulate(u: np.ndarray) -> np.ndarray:
         return n_map(inner_model.simulate(u))
 
-    inner = inner_model.simulate(v)
+    inner = ctx.estimation_simulation(inner_model.simulate)
     maps = (map_plot("F (input map)", inner_model.static, v), map_plot("N (output map)", n_map, inner))
     details = {"output_breakpoints": partition.tolist(), **order_details(inner_model)}
     return ExtendedModel("output_nonlinearity", "hammerstein-wiener", s.validation_output(simulate), details, maps,

@@ -13,6 +13,7 @@ from ...identification.billings_fakhouri import identify_feedforward
 from ...identification.linear import LinearModel
 from ...identification.piecewise_linear_ls import rank_one_factors
 from ...identification.regression import build_regression, solve_least_squares
+from ...identification.runs import Runs, per_run, several
 from ...identification.simulation_error import refine, stabilised_denominator, steady_state_filter
 from ..hammerstein import HammersteinModel, HammersteinParameters
 from .common import Context, ExtendedModel, map_plot, order_details
@@ -21,9 +22,11 @@ PATH_ORDER = 2  # order of the parallel path
 IMPULSE_LENGTH = 400
 
 
-def linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int) -> tuple[np.ndarray, np.ndarray]:
-    """(b, a) of an ARX fit of target on u (shared builder), stabilised."""
-    reg = build_regression(target, u, order, delay)
+def linear_fit(u: np.ndarray, target: np.ndarray, order: int, delay: int,
+               runs: Runs | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(b, a) of an ARX fit of target on u (shared builder), stabilised (``runs``: no regressor
+    reaches into another run)."""
+    reg = build_regression(target, u, order, delay, runs=runs)
     theta = solve_least_squares(reg.phi, reg.target)
     a, coefficients = reg.split(theta)
     b = np.concatenate([np.zeros(delay), coefficients[:, 0]])
@@ -38,15 +41,21 @@ class Feedforward:
     b2: np.ndarray
     a2: np.ndarray
 
-    def simulate(self, v: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+    def simulate(self, v: np.ndarray, basis: np.ndarray | None = None, runs: Runs | None = None) -> np.ndarray:
+        """Free-run output from rest at v(0) (``basis``: eta(v), when known; ``runs``: every run
+        from rest at its own first input)."""
         m = self.branch
-        branch = steady_state_filter(m.b, m.a, (m.basis(v) if basis is None else basis) @ m.slopes + m.kappa)
+        basis = m.basis(v) if basis is None else basis
+        if several(runs) is not None:
+            return per_run(lambda p: self.simulate(p[:, 0], p[:, 1:]), np.column_stack([v, basis]), runs)
+        branch = steady_state_filter(m.b, m.a, basis @ m.slopes + m.kappa)
         return branch + steady_state_filter(self.b2, self.a2, v)
 
 
-def _refine_feedforward(start: Feedforward, v: np.ndarray, y: np.ndarray, eta: np.ndarray, skip: int) -> Feedforward:
+def _refine_feedforward(start: Feedforward, v: np.ndarray, y: np.ndarray, eta: np.ndarray, skip: int,
+                        runs: Runs | None = None) -> Feedforward:
     """The feedforward model minimising the simulation error from ``start`` (the branch's
-    largest numerator coefficient fixed, as in the baseline)."""
+    largest numerator coefficient fixed, as in the baseline; ``runs``: summed over the runs)."""
     params = HammersteinParameters(start.branch)
     size, order = params.size, start.a2.size - 1
 
@@ -55,7 +64,7 @@ def _refine_feedforward(start: Feedforward, v: np.ndarray, y: np.ndarray, eta: n
                            np.concatenate([[1.0], theta[size : size + order]]))
 
     theta0 = np.concatenate([params.pack(start.branch), start.a2[1:], start.b2])
-    return unpack(refine(lambda t: unpack(t).simulate(v, eta), theta0, y, 40, skip))
+    return unpack(refine(lambda t: unpack(t).simulate(v, eta, runs), theta0, y, 40, skip))
 
 
 def extend_parallel_path(ctx: Context) -> ExtendedModel:
@@ -64,14 +73,15 @@ def extend_parallel_path(ctx: Context) -> ExtendedModel:
     least-squares fit (``_common_denominator_start``; the baseline may have absorbed a slow
     path into its own dynamics), and from the Billings-Fakhouri correlation estimate
     (``billings_fakhouri.identify_feedforward``, exact for a Gaussian input) when it applies;
-    the start with the smallest simulation error after refinement wins."""
-    base, s, skip = ctx.baseline, ctx.split, ctx.skip
+    the start with the smallest simulation error after refinement wins. On a record of several
+    runs every regression, correlation and simulation is run by run (``Context``)."""
+    base, s, skip, runs = ctx.baseline, ctx.split, ctx.skip, ctx.runs
     v, y = s.v_est, s.y_est
     eta = base.basis(v)
-    b2, a2 = linear_fit(v, y - base.simulate(v), PATH_ORDER, 0)
+    b2, a2 = linear_fit(v, y - ctx.estimation_simulation(base.simulate), PATH_ORDER, 0, runs)
     starts = [Feedforward(base, b2, a2), _common_denominator_start(ctx), _billings_fakhouri_start(ctx)]
-    fits = [_refine_feedforward(start, v, y, eta, skip) for start in starts if start is not None]
-    costs = [float(np.sum((y - f.simulate(v, eta))[skip:] ** 2)) for f in fits]
+    fits = [_refine_feedforward(start, v, y, eta, skip, runs) for start in starts if start is not None]
+    costs = [float(np.sum((y - f.simulate(v, eta, runs))[skip:] ** 2)) for f in fits]
     best = fits[int(np.nanargmin(costs))]
     path = LinearModel(best.b2, best.a2)
     details = {"branch": order_details(best.branch), "parallel_path": {
@@ -96,7 +106,7 @@ def _common_denominator_start(ctx: Context) -> Feedforward | None:
     base, s, skip = ctx.baseline, ctx.split, ctx.skip
     v, y = s.v_est, s.y_est
     try:
-        reg = build_regression(y, np.column_stack([base.basis(v), v]), base.order + PATH_ORDER, 0)
+        reg = build_regression(y, np.column_stack([base.basis(v), v]), base.order + PATH_ORDER, 0, runs=ctx.runs)
     except ValueError:
         return None
     theta = solve_least_squares(np.column_stack([reg.phi, np.ones(reg.rows.size)])[skip:], reg.target[skip:])
@@ -118,7 +128,7 @@ def _billings_fakhouri_start(ctx: Context) -> Feedforward | None:
     base, s = ctx.baseline, ctx.split
     v, y = s.v_est, s.y_est
     try:
-        fit = identify_feedforward(v, y, base.order, max(base.delay, 1), poly=3)
+        fit = identify_feedforward(v, y, base.order, max(base.delay, 1), poly=3, runs=ctx.runs)
     except (IdentificationError, np.linalg.LinAlgError, ValueError):
         return None
     if not (fit.branch.is_stable() and fit.parallel_path.is_stable()) or fit.branch.a.size != base.a.size:
