@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from relative_tolerance import assert_close
 
 from hammer_ros.identification.correlation_least_squares import (
     cls_from_correlations,
@@ -22,7 +23,6 @@ from hammer_ros.identification.static_maps import PolynomialMap
 
 pytest.importorskip("numba")
 
-TOLERANCE = 1e-9
 SAMPLES = 3000
 
 
@@ -49,15 +49,6 @@ def random_case(seed: int):
     v = rng.normal(rng.normal(0, 0.05), 0.2, SAMPLES)
     y = add_noise(simulate_hammerstein(v, fmap, linear), 0.02, seed=rng)
     return v, y, order, delay
-
-
-def assert_close(compiled, reference, name: str) -> None:
-    """Equal to TOLERANCE relative to the reference's largest magnitude (entry by entry)."""
-    compiled, reference = np.asarray(compiled), np.asarray(reference)
-    assert compiled.shape == reference.shape, name
-    if reference.size:
-        scale = max(float(np.max(np.abs(reference))), 1e-300)
-        assert np.max(np.abs(compiled - reference)) <= TOLERANCE * scale, (name, compiled, reference)
 
 
 FIGURES = {

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from relative_tolerance import assert_close
 
 from hammer_ros.identification.linear import LinearModel
 from hammer_ros.identification.methods import IdentifyOptions, identify
@@ -21,7 +22,6 @@ from hammer_ros.identification.static_maps import PiecewiseLinearMap
 
 pytest.importorskip("numba")
 
-TOLERANCE = 1e-9
 
 
 def random_case(seed: int):
@@ -37,15 +37,6 @@ def random_case(seed: int):
     u = rng.uniform(-1.0, 1.0, int(rng.integers(1000, 4001))) + rng.normal(0.0, 0.1)
     y = simulate_hammerstein(u, fmap, linear)
     return u, add_noise(y, rng.uniform(0.01, 0.05), seed=rng), order, delay
-
-
-def assert_close(compiled, reference, name: str) -> None:
-    """Equal to TOLERANCE relative to the reference's largest magnitude."""
-    compiled, reference = np.asarray(compiled), np.asarray(reference)
-    assert compiled.shape == reference.shape, name
-    if reference.size:
-        scale = max(float(np.max(np.abs(reference))), 1e-300)
-        assert np.max(np.abs(compiled - reference)) <= TOLERANCE * scale, (name, compiled, reference)
 
 
 FIGURES = {

@@ -28,7 +28,7 @@ from ..errors import IdentificationError
 from ..identification.compiled_loops import physical_servo_loop
 from ..identification.runs import Runs, several
 from ..identification.simulation_error import refine_starts
-from .servo_loop import MAX_DELAY, ServoFit, fit_servo_loop
+from .servo_loop import MAX_DELAY, ServoFit, fit_servo_loop, from_first_positions
 from .split import held_back, per_run
 
 NAMES = ("gain", "torque_limit", "offset", "gravity", "gravity_angle", "viscous", "coulomb")
@@ -89,21 +89,19 @@ def _simulator(theta: np.ndarray, delay: int, y0: float) -> Callable[[np.ndarray
 
 def _runner(delay: int, u: np.ndarray, y: np.ndarray, runs: Runs | None) -> Callable[[np.ndarray], np.ndarray]:
     """theta -> the loop's output on u, every run from rest at its own first measured position."""
-    runs = Runs.one(u.size) if runs is None else runs
-    parts = [(part, float(first[0])) for part, first in zip(runs.split(u), runs.split(y))]
-    return lambda theta: np.concatenate([_simulator(theta, delay, y0)(part) for part, y0 in parts])
+    return lambda theta: from_first_positions(lambda y0: _simulator(theta, delay, y0), u, y, runs)
 
 
 def projected_start(servo: ServoFit, u: np.ndarray, y: np.ndarray, runs: Runs | None) -> np.ndarray:
     """theta of the physical form nearest the servo loop's maps over the samples they saw (least
     squares): h(y) ~ G sin(y - p) + c, f(e) - c ~ sat_T(K (e + o)), phi(w) + c_s sign(w) ~ B w + C sign(w)."""
-    f, h, phi = servo.layout.maps(servo.theta)
-    e = per_run(lambda part: held_back(part, servo.layout.delay), u, runs) - y
+    f, h, phi = servo.maps()
+    e = per_run(lambda part: held_back(part, servo.delay), u, runs) - y
     w = np.concatenate([np.diff(part) for part in (runs.split(y) if runs is not None else [y])])
     (a, b, c), *_ = np.linalg.lstsq(np.column_stack([np.sin(y), np.cos(y), np.ones(y.size)]), h(y), rcond=None)
     gravity, angle = float(np.hypot(a, b)), float(np.arctan2(-b, a))
     target = f(e) - c
-    slope = float(f.slopes[np.searchsorted(servo.layout.error_part, 0.0)])
+    slope = float(f.slopes[np.searchsorted(f.breakpoints, 0.0)])
     limit0 = float(np.max(np.abs(target))) or 1.0
     gain0 = slope if slope > 0 else limit0 / (float(np.max(np.abs(e))) or 1.0)
     offset0 = (float(f(np.zeros(1))[0]) - c) / gain0
@@ -158,14 +156,13 @@ class ServoChoice:
     held_back_rms: dict[str, float] | None
 
 
-def _held_back_part(samples: int, runs: Runs | None) -> tuple[int, Runs | None, Runs | None]:
-    """(first held-back sample, the runs before it, all the runs): the last whole runs, HELD_BACK of
-    them (at least one), with several runs; else the last HELD_BACK of the samples."""
-    if runs is not None and runs.count >= 2:
+def _held_back_part(samples: int, runs: Runs | None) -> tuple[int, Runs | None]:
+    """(first held-back sample, the runs before it): the last whole runs, HELD_BACK of them (at least
+    one), with several runs; else the last HELD_BACK of the samples."""
+    if runs is not None:
         held = int(np.clip(round(HELD_BACK * runs.count), 1, runs.count - 1))
-        cut = int(runs.starts[runs.count - held])
-        return cut, several(runs.select(range(runs.count - held))[1]), runs
-    return int(round((1.0 - HELD_BACK) * samples)), None, None
+        return int(runs.starts[runs.count - held]), several(runs.select(range(runs.count - held))[1])
+    return int(round((1.0 - HELD_BACK) * samples)), None
 
 
 def _held_back_rms(fit: ServoFit | PhysicalServoFit, u: np.ndarray, y: np.ndarray, cut: int,
@@ -175,8 +172,7 @@ def _held_back_rms(fit: ServoFit | PhysicalServoFit, u: np.ndarray, y: np.ndarra
     if runs is None:
         out = fit.simulate(u)[cut:]
     else:
-        parts = [(pu, float(py[0])) for pu, py, start in zip(runs.split(u), runs.split(y), runs.starts) if start >= cut]
-        out = np.concatenate([fit.from_rest(y0)(pu) for pu, y0 in parts])
+        out = from_first_positions(fit.from_rest, u[cut:], y[cut:], runs.window(cut, u.size))
     with np.errstate(all="ignore"):
         value = float(np.sqrt(np.mean((out - y[cut:]) ** 2)))
     return value if np.isfinite(value) else np.inf
@@ -191,13 +187,13 @@ def choose_servo_form(u: np.ndarray, y: np.ndarray, runs: Runs | None = None,
     cannot be made at all, the maps."""
     u, y = np.asarray(u, dtype=float), np.asarray(y, dtype=float)
     runs = several(runs)
-    cut, fit_runs, all_runs = _held_back_part(u.size, runs)
+    cut, fit_runs = _held_back_part(u.size, runs)
     scores: dict[str, float] = {}
     try:
         servo_part = fit_servo_loop(u[:cut], y[:cut], fit_runs)
-        scores["servo_loop"] = _held_back_rms(servo_part, u, y, cut, all_runs)
+        scores["servo_loop"] = _held_back_rms(servo_part, u, y, cut, runs)
         physical_part = fit_physical_servo(u[:cut], y[:cut], fit_runs, servo_part)
-        scores["physical_servo"] = _held_back_rms(physical_part, u, y, cut, all_runs)
+        scores["physical_servo"] = _held_back_rms(physical_part, u, y, cut, runs)
     except IdentificationError:
         pass
     servo = fit_servo_loop(u, y, runs) if maps is None else maps

@@ -253,8 +253,12 @@ def fit_servo_loop(u: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> Se
 
 def _runner(layout: ServoLayout, u: np.ndarray, y: np.ndarray, runs: Runs | None) -> Callable[[np.ndarray], np.ndarray]:
     """theta -> the loop's output on u, from rest at y(0) (with ``runs``: every run from its own y(start))."""
-    if runs is None:
-        y0 = float(y[0])
-        return lambda theta: layout.simulator(theta, y0)(u)
-    parts = [(part, float(first[0])) for part, first in zip(runs.split(u), runs.split(y))]
-    return lambda theta: np.concatenate([layout.simulator(theta, y0)(part) for part, y0 in parts])
+    return lambda theta: from_first_positions(lambda y0: layout.simulator(theta, y0), u, y, runs)
+
+
+def from_first_positions(from_rest: Callable[[float], Callable[[np.ndarray], np.ndarray]], u: np.ndarray,
+                         y: np.ndarray, runs: Runs | None) -> np.ndarray:
+    """The output of a loop whose state at rest is its position: every run of u (one without
+    ``runs``) simulated by ``from_rest(y0)`` from rest at its own first measured position, concatenated."""
+    runs = Runs.one(np.size(u)) if runs is None else runs
+    return np.concatenate([from_rest(float(part_y[0]))(part_u) for part_u, part_y in zip(runs.split(u), runs.split(y))])
