@@ -13,8 +13,10 @@ import pytest
 from scipy import signal
 
 from hammer_ros.errors import UsageError
+from hammer_ros.identification import trust
 from hammer_ros.identification.closed_loop import random_loop_pair
 from hammer_ros.identification.runs import Runs
+from hammer_ros.identification.static_maps import PolynomialMap
 from hammer_ros.io.records import load_record
 from hammer_ros.io.resample import uniform_grid
 from hammer_ros.streaming.config import EngineConfig
@@ -200,3 +202,41 @@ def test_replay_model_carries_warnings():
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["warnings"] == []
+
+
+def reference_not_exciting(v, y, needed):
+    """The ``not_exciting`` checks of ``excitation_warnings`` as defined, with the sorts: the output's
+    std within QUANTISATION_STEPS steps, the input's std within STILL_INPUT of its level, fewer
+    distinct input values than ``needed`` (and more than one)."""
+    spread, step = float(np.std(y)), trust.quantisation_step(y)
+    levels = np.unique(v).size
+    return (spread < trust.QUANTISATION_STEPS * step or spread == 0.0,
+            float(np.std(v)) <= trust.STILL_INPUT * float(np.max(np.abs(v))), 1 < levels < needed)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_not_exciting_checks_decide_as_their_definition(seed):
+    """The checks without the sorts (a non-zero change of the output of at most std / 2 bounds the
+    quantisation step; the input's first 64 samples usually show enough levels) decide as the
+    definitions do, on encoders toggling between counts, random walks, steps, held levels and noise."""
+    rng = np.random.default_rng(seed)
+    n, count = 500, 2.0 ** -rng.integers(3, 12)
+    kind = seed % 4
+    if kind == 0:  # an encoder that toggles between a few counts
+        y = count * rng.integers(0, 1 + seed % 3, n)
+    elif kind == 1:  # a quantised random walk
+        y = count * np.round(np.cumsum(rng.standard_normal(n)) * rng.uniform(0.05, 3.0))
+    elif kind == 2:  # a step, quantised, with a rare one-count blip
+        y = count * np.round((np.arange(n) >= n // 2) * rng.uniform(0, 4) / count)
+        y[rng.integers(n)] += count
+    else:
+        y = rng.standard_normal(n)
+    levels = 1 + seed % 6
+    v = rng.choice(rng.standard_normal(levels), n) if seed % 5 else 2.0 + 1e-5 * rng.standard_normal(n)
+    v[:64] = v[0] if seed % 7 == 0 else v[:64]  # a head held at one value: the levels come later
+    needed = 4
+    output_still, input_still, few_levels = reference_not_exciting(v, y, needed)
+    messages = [w.message for w in trust.excitation_warnings(v, y, PolynomialMap(np.array([0.0, 1.0, 0.5, 0.2])))]
+    assert any("output varies within" in m for m in messages) == output_still
+    assert any("barely varies" in m for m in messages) == input_still
+    assert any("distinct values, too few" in m for m in messages) == few_levels

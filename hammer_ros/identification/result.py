@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from .free_run_kernel import hammerstein_free_run
 from .linear import LinearModel
 from .runs import Runs, rest_length
 from .trust import ModelWarning, model_warnings, warnings_json
@@ -90,14 +91,20 @@ class IdentificationResult:
         (``Runs.initial_states``)."""
         runs = Runs.one(np.size(v)) if runs is None else runs
         settle = rest_length(self.linear.poles)
+        if runs.count == 1:  # a polynomial Hammerstein model (CLS's) in one compiled loop, the same numbers
+            compiled = hammerstein_free_run(self.simulate, v, y, settle)
+            if compiled is not None:
+                return compiled
         return runs.simulate(self.simulate, v, settle, runs.initial_states(self.simulate, v, y, settle))
 
-    def evaluate(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> Evaluation:
+    def evaluate(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None,
+                 input_assumptions: bool = True) -> Evaluation:
         """The model on the record (v, y): its free-run fit and rms (``free_run``) and its own warnings
-        there (``trust.model_warnings``)."""
+        there (``trust.model_warnings``; ``input_assumptions=False``: without ``input_not_white``, for a
+        caller that reads only the ``UNTRUSTED`` ones)."""
         y = np.asarray(y, dtype=float)
         fit, rms = fit_and_rms(y, self.free_run(v, y, runs))
-        return Evaluation(fit, rms, model_warnings(self, np.asarray(v, dtype=float), y, fit))
+        return Evaluation(fit, rms, model_warnings(self, np.asarray(v, dtype=float), y, fit, input_assumptions))
 
     def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None,
                 warnings: Sequence[ModelWarning] = (), evaluation: Evaluation | None = None) -> dict:

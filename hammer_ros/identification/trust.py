@@ -88,13 +88,40 @@ def quantisation_step(x: np.ndarray) -> float:
     return float(np.diff(levels).min()) if levels.size > 1 else math.inf
 
 
+def _std(x: np.ndarray) -> float:
+    """The standard deviation of x (``np.std``'s value without its dispatch)."""
+    centred = x - x.sum() / x.size
+    return math.sqrt(float(centred @ centred) / x.size)
+
+
+def _moves_beyond(x: np.ndarray, step_bound: float) -> bool:
+    """Whether some change between consecutive samples of x is non-zero and at most ``step_bound``
+    (std / QUANTISATION_STEPS): then so is the quantisation step (at most any non-zero difference of
+    two values: rounding is monotone), and the spread is not within the quantisation; decided without
+    ``quantisation_step``'s sort."""
+    changes = np.abs(np.diff(x))
+    return bool(np.any((changes > 0.0) & (changes <= step_bound)))
+
+
+def _distinct_values(x: np.ndarray, enough: int) -> int:
+    """The number of distinct values of x, or some number >= ``enough`` when it has that many (the
+    first samples usually show it: a random input differs at every sample)."""
+    if enough <= 2:
+        return enough
+    head = np.unique(x[:64]).size
+    return head if head >= enough else int(np.unique(x).size)
+
+
 def map_levels_needed(nonlinearity: Any) -> int:
     """Distinct input levels that determine the input map: p + 1 for a polynomial of degree p, one
     per knot plus one for a piecewise-linear map (0: no map, or a map known only at points)."""
     from .static_maps import PiecewiseLinearMap, PolynomialMap
 
     if isinstance(nonlinearity, PolynomialMap):
-        return int(np.trim_zeros(nonlinearity.coefficients, "b").size) if nonlinearity.coefficients.size > 2 else 0
+        coefficients = nonlinearity.coefficients.tolist()
+        while coefficients and coefficients[-1] == 0.0:  # the degree + 1 (trailing zeros dropped)
+            coefficients.pop()
+        return len(coefficients) if nonlinearity.coefficients.size > 2 else 0
     if isinstance(nonlinearity, PiecewiseLinearMap):
         return int(nonlinearity.breakpoints.size) + 1
     return 0
@@ -110,17 +137,19 @@ def excitation_warnings(v: np.ndarray, y: np.ndarray, nonlinearity: Any = None,
     if v.size == 0 or y.size == 0:
         return ()
     out = []
-    spread, step = float(np.std(y)), quantisation_step(y)
-    if spread < QUANTISATION_STEPS * step or spread == 0.0:
-        out.append(ModelWarning("not_exciting", f"the output varies within its quantisation (std {spread:.3g}, "
-                                                f"{np.unique(y).size} distinct values {step:.3g} apart): the input "
-                                                "did not move it"))
-    spread, level = float(np.std(v)), float(np.max(np.abs(v)))
+    spread = _std(y)
+    if spread == 0.0 or not _moves_beyond(y, spread / QUANTISATION_STEPS):
+        step = quantisation_step(y)
+        if spread < QUANTISATION_STEPS * step or spread == 0.0:
+            out.append(ModelWarning("not_exciting", f"the output varies within its quantisation (std {spread:.3g}, "
+                                                    f"{np.unique(y).size} distinct values {step:.3g} apart): the "
+                                                    "input did not move it"))
+    spread, level = _std(v), float(max(v.max(), -v.min()))
     if spread <= STILL_INPUT * level:
         out.append(ModelWarning("not_exciting", f"the input barely varies (std {spread:.3g} at a level of "
                                                 f"{level:.3g}): what it excites is within noise"))
-    levels = int(np.unique(v).size)
     needed = max(map_levels_needed(nonlinearity), 3 if nonlinear_method else 0)
+    levels = _distinct_values(v, needed)
     if 1 < levels < needed:
         determined = "a gain (an affine map)" if levels == 2 else "a coarse map"
         reduced = map_levels_needed(nonlinearity) <= levels  # the map returned is what the levels determine
@@ -156,6 +185,8 @@ def is_trajectory(v: np.ndarray, shape: tuple[float, float, float, float] | None
 
 def whiteness_warnings(method: str, v: np.ndarray) -> tuple[ModelWarning, ...]:
     """``input_not_white`` for a correlation method whose input assumption ``v`` breaks (module docstring)."""
+    if method not in SEPARABLE_INPUT_METHODS and method not in WHITE_GAUSSIAN_METHODS:
+        return ()
     rho, skew, kurtosis, held = measured = input_shape(v)
     gaussian = abs(skew) <= MAX_SKEW and abs(kurtosis) <= MAX_EXCESS_KURTOSIS
     shape = (f"lag-1 autocorrelation {rho:.2f}, skewness {skew:.2f}, excess kurtosis {kurtosis:.2f}, "
@@ -176,10 +207,12 @@ def closed_loop_warning(value: float, bound: float) -> ModelWarning:
                                        "reference with --reference")
 
 
-def model_warnings(result: Any, v: np.ndarray, y: np.ndarray, fit: float | None) -> tuple[ModelWarning, ...]:
+def model_warnings(result: Any, v: np.ndarray, y: np.ndarray, fit: float | None,
+                   input_assumptions: bool = True) -> tuple[ModelWarning, ...]:
     """The warnings of an ``IdentificationResult`` on its data (v, y) with its fit there (a refined
-    one, ``refinement``, is an output-error estimate: no ``input_not_white``)."""
+    one, ``refinement``, is an output-error estimate: no ``input_not_white``; nor without
+    ``input_assumptions``)."""
     nonlinear = not result.method.startswith("ls-")
     refined = "refined" in result.extra  # an output-error estimate: no assumption on the input's shape
     return (*fit_warnings(fit), *excitation_warnings(v, y, result.nonlinearity, nonlinear),
-            *(() if refined else whiteness_warnings(result.method, v)))
+            *(() if refined or not input_assumptions else whiteness_warnings(result.method, v)))

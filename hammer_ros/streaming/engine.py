@@ -283,7 +283,8 @@ class Estimate:
     result: IdentificationResult | None = None
     doc: dict | None = None
     fit: float | None = None  # the model's fit percent on the window (None: not finite)
-    warnings: tuple[ModelWarning, ...] = ()  # the model's own on the window (``trust.model_warnings``)
+    warnings: tuple[ModelWarning, ...] = ()  # the model's own on the window (``trust.model_warnings``; not
+    # ``input_not_white`` when not documented: the outcome reads the UNTRUSTED ones)
     status: str = ""  # '' (a model, or stopped by a check) | failed | exception
     reason: str = ""
     seconds: float = 0.0
@@ -378,7 +379,7 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
                 from ..identification.refinement import refine_result
 
                 result = refine_result(result, refinement_input(v, reference), y)
-            evaluation = result.evaluate(v, y)
+            evaluation = result.evaluate(v, y, input_assumptions=document)  # the outcome reads UNTRUSTED ones only
             doc = result.to_json(v, y, evaluation=evaluation) if document else None
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
         status, reason = _failure(cfg.method, exc)
