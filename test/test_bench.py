@@ -80,6 +80,7 @@ def test_fleet_section_runs_on_tiny_sizes():
     section = bench.fleet_section(bags=8, rounds=1)
     [row] = section.rows
     assert row["serial"] > 0 and row["fleet"] > 0 and row["ratio"] > 0 and row["task"] > 0 and row["startup"] > 0
+    assert 0 < row["cpu"] < 3600  # CPU seconds per hour of recorded data: far less than real time
     assert row["plain"] > 0
     assert "8 bags" in row["case"]
     assert any(g["goal"].startswith("fleet") for g in bench.goals({"fleet": section}).rows)

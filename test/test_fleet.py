@@ -400,3 +400,15 @@ def test_default_tasks_shrink_to_single_bags_at_the_end():
         left -= size
     assert [len(b) for b in task_batches(bags, 2, 5)] == [5] * 40
     assert [len(b) for b in task_batches(list(range(24)), 2)] == [1] * 24
+
+
+def test_sample_fleet_bags_hold_the_samples_asked_for(tmp_path):
+    """``write_sample_fleet(samples=N)``: N samples per topic (the bench's fleet row sizes its bags so;
+    the argument was once ignored and every bag held the default)."""
+    from hammer_ros.fleet.sample_fleet import BATCH, SAMPLES
+    from hammer_ros.io.bag_index import bag_message_counts
+
+    joints = sample_joints(robots=1, joints=1, drift_day=None, dead_zone_day=None)
+    for samples in (1000, SAMPLES):
+        bag = write_sample_fleet(tmp_path / str(samples), joints, 1, samples=samples)[0]
+        assert bag_message_counts(bag.path) == {"/cmd": samples // BATCH, "/response": samples // BATCH}

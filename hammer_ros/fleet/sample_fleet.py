@@ -140,7 +140,7 @@ def write_sample_fleet(out: str | Path, joints: Sequence[JointSpec], days: int, 
         for day in range(1, days + 1):
             start = START + datetime.timedelta(days=day - 1, minutes=7 * g)
             path = out / spec.robot / spec.joint / f"{start.date().isoformat()}.mcap"
-            v, y = record(spec, day, seed=seed + 1000 * g + 2 * day)
+            v, y = record(spec, day, seed=seed + 1000 * g + 2 * day, samples=samples)
             write_bag(path, v, y, int(start.timestamp()) * 1_000_000_000)
             bags.append(SampleBag(path, spec, day, start.date().isoformat(), False))
     if damaged:
