@@ -235,9 +235,9 @@ def start_fleet(*argv: str) -> tuple[subprocess.Popen, dict, threading.Thread]:
 def test_sigkill_of_a_worker_mid_run_loses_no_bag(fleet, tmp_path):
     root, _ = fleet
     cluster = Cluster(tmp_path / "cluster")
-    try:
+    try:  # 10 solves per bag second: bags of ~0.2 s each, so that the kill meets tasks in flight
         proc, state, reader = start_fleet(str(root / "bags"), "--config", CONFIG, "--scheduler", cluster.address,
-                                          "--out", str(tmp_path / "out"), "--json")
+                                          "--out", str(tmp_path / "out"), "--solve-rate", "10", "--json")
         wait_for(lambda: state["done"] >= 3 or proc.poll() is not None, 240, "3 bags done")
         done_at_kill = state["done"]
         os.kill(cluster.workers[0].pid, signal.SIGKILL)
