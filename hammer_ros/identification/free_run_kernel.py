@@ -4,7 +4,7 @@ y = B(q)/A(q) F(v) with F a polynomial), in one numba loop instead of four ``lfi
 their array copies (``Runs.initial_states`` and ``Runs.simulate`` of one run).
 
 The operations are the reference's, in its order: F(v) by Horner's rule as ``PolynomialMap``, then
-the transposed direct form II recursion of ``scipy.signal.lfilter`` (b and a divided by a_0),
+the transposed direct form II recursion of ``scipy.signal.lfilter`` (a_0 = 1, as ``LinearModel`` holds it),
 
     y(k) = z_0 + b_0 u(k),   z_i = z_(i+1) + u(k) b_(i+1) - y(k) a_(i+1),   z_(n-1) = u(k) b_n - y(k) a_n,
 
@@ -50,18 +50,15 @@ def hammerstein_free_run(simulate, v: np.ndarray, y: np.ndarray, settle: int) ->
 
 
 def _polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(F's coefficients, b / a_0, a / a_0, both of one length) of a polynomial Hammerstein simulator, or None."""
+    """(F's coefficients, b, a, both of one length) of a polynomial Hammerstein simulator, or None."""
     if not isinstance(simulate, partial) or simulate.func is not simulate_hammerstein or simulate.args:
         return None
     nonlinearity, linear = simulate.keywords.get("nonlinearity"), simulate.keywords.get("linear")
     if not isinstance(nonlinearity, PolynomialMap) or linear is None or set(simulate.keywords) != {"nonlinearity",
                                                                                                       "linear"}:
         return None
-    b, a = np.asarray(linear.b, dtype=float), np.asarray(linear.a, dtype=float)
-    if a.size == 0 or a[0] == 0.0 or nonlinearity.coefficients.size == 0:
-        return None
-    length = max(a.size, b.size)
-    b, a = (np.concatenate([c / a[0], np.zeros(length - c.size)]) for c in (b, a))
+    length = max(linear.a.size, linear.b.size)  # LinearModel holds a_0 = 1 (it divides by a_0)
+    b, a = (np.concatenate([c, np.zeros(length - c.size)]) for c in (linear.b, linear.a))
     return np.ascontiguousarray(nonlinearity.coefficients, dtype=float), b, a
 
 

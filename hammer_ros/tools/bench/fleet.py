@@ -14,6 +14,7 @@ from .common import (
     Section,
     _median,
     _timed,
+    children_cpu_seconds,
 )
 
 FLEET_WORKERS = 2
@@ -30,14 +31,6 @@ def _replay_share(settings, sources, barrier, results) -> None:
     barrier.wait()
     seconds, _ = _timed(lambda: [run_bag(settings, s) for s in sources])
     results.put(seconds)
-
-
-def _cpu_seconds() -> float:
-    """CPU seconds of this process and of its children that have been waited for."""
-    import resource
-
-    children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
 
 
 def plain_processes_wall(settings, sources, workers: int) -> float:
@@ -90,10 +83,11 @@ def fleet_section(bags: int, workers: int = FLEET_WORKERS, rounds: int = FLEET_R
         run_bag(settings, sources[0])  # this process's first bag pays lazy imports, as a worker's warm-up does
 
         def measure_serial() -> None:
-            started = _cpu_seconds()
+            started = time.process_time() + children_cpu_seconds()  # any solver process a replay forked too
             seconds, rows = _timed(lambda: [run_bag(settings, s) for s in sources])
             serial.append(seconds)
-            cpu.append((_cpu_seconds() - started) / (len(sources) * BAG_SAMPLES / BAG_RATE / 3600.0))
+            used = time.process_time() + children_cpu_seconds() - started
+            cpu.append(used / (len(sources) * BAG_SAMPLES / BAG_RATE / 3600.0))
             errors.extend(r["error"] for r in rows if r.get("error"))
 
         def measure_fleet() -> None:  # a cluster of its own: none idles beside the serial and plain runs

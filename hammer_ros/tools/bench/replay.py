@@ -16,6 +16,7 @@ from .common import (
     Section,
     _median,
     _timed,
+    children_cpu_seconds,
     hammerstein_record,
 )
 
@@ -74,20 +75,12 @@ def run_replay(path: Path, batch: int, window: int, solve_rate: float | None = N
         argv += ["--solve-rate", f"{solve_rate:g}"]
     args = build_parser().parse_args(argv)
     out = io.StringIO()
-    before, children = time.process_time(), _children_cpu_seconds()
+    before, children = time.process_time(), children_cpu_seconds()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
         elapsed, _ = _timed(lambda: replay(args))
     doc = json.loads(out.getvalue())
-    doc["cpu_s"] = {"reading": time.process_time() - before, "solver": _children_cpu_seconds() - children}
+    doc["cpu_s"] = {"reading": time.process_time() - before, "solver": children_cpu_seconds() - children}
     return elapsed, doc
-
-
-def _children_cpu_seconds() -> float:
-    """User + system CPU seconds of this process's children that have been waited for."""
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
 
 
 REPLAY_MODES = (("2 solves / bag s", None), ("final solve only", 1e-6))
