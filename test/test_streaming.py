@@ -383,7 +383,8 @@ def test_batch_messages_put_the_last_sample_at_the_stamp():
 
 def test_solve_outcome_is_the_document_of_its_result(record):
     """An ok solve carries ``result.to_json`` on its window (poles, zeros, F, fit) and the Markov
-    parameters of that document; the next solve compares against it as the published model."""
+    parameters of that document; the next solve compares against it as the published model. Its fit
+    and rms are the compiled evaluation's (``window_fit``): the reference's to rounding."""
     from hammer_ros.identification.result import fit_percent
     from hammer_ros.streaming.engine import solve_snapshot
 
@@ -394,11 +395,17 @@ def test_solve_outcome_is_the_document_of_its_result(record):
     snapshot = engine.snapshot()
     outcome = solve_snapshot(snapshot)
     assert outcome.ok and outcome.status == "ok"
-    assert outcome.doc == outcome.result.to_json(snapshot.v, snapshot.y)
+    reference = outcome.result.to_json(snapshot.v, snapshot.y)
+    compiled = outcome.result.evaluate(snapshot.v, snapshot.y, compiled=True)
+    assert outcome.doc == outcome.result.to_json(snapshot.v, snapshot.y, evaluation=compiled)
+    assert {k: v for k, v in outcome.doc.items() if k not in ("fit_percent", "rms")} == {
+        k: v for k, v in reference.items() if k not in ("fit_percent", "rms")}
+    assert outcome.doc["rms"] == pytest.approx(reference["rms"], rel=1e-12)
     assert outcome.markov == tuple(outcome.doc["markov"]) and len(outcome.markov) == 31
     assert outcome.doc["poles"] == [[p.real, p.imag] for p in outcome.result.linear.poles]
-    assert outcome.doc["fit_percent"] == fit_percent(snapshot.y, outcome.result.simulate(snapshot.v))
-    assert outcome.input_std == float(np.std(snapshot.v))
+    assert outcome.doc["fit_percent"] == pytest.approx(fit_percent(snapshot.y, outcome.result.simulate(snapshot.v)),
+                                                       rel=1e-12)
+    assert outcome.input_std == pytest.approx(float(np.std(snapshot.v)), rel=1e-12)
     engine.record(outcome)
     engine.add_excitation(t[6000:], v[6000:])
     engine.add_response(t[6000:], y[6000:])

@@ -15,6 +15,7 @@ from scipy import signal
 from hammer_ros.errors import UsageError
 from hammer_ros.identification import trust
 from hammer_ros.identification.closed_loop import random_loop_pair
+from hammer_ros.identification.compiled_loops import distinct_values, spread_figures
 from hammer_ros.identification.runs import Runs
 from hammer_ros.identification.static_maps import PolynomialMap
 from hammer_ros.io.records import load_record
@@ -240,3 +241,22 @@ def test_not_exciting_checks_decide_as_their_definition(seed):
     assert any("output varies within" in m for m in messages) == output_still
     assert any("barely varies" in m for m in messages) == input_still
     assert any("distinct values, too few" in m for m in messages) == few_levels
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_spread_and_levels_are_numpys(compiled):
+    """``spread_figures`` and ``distinct_values`` (compiled, and their Python form: the same numbers) give
+    np.std to rounding, the extremes, the moves of at most a fraction of the std and np.unique's count,
+    on noise, a quantised walk, a constant, two levels with -0.0 and 0.0, and a short record."""
+    rng = np.random.default_rng(4)
+    records = [3.0 + rng.standard_normal(4001), 0.25 * np.round(np.cumsum(rng.standard_normal(999))),
+               np.full(100, 0.1), np.array([0.0, -0.0, 1.0, 0.0, 1.0]), np.array([2.5])]
+    for x in records:
+        std, high, low, moves = spread_figures(x, 0.5, compiled=compiled)
+        assert std == pytest.approx(np.std(x), rel=1e-12, abs=1e-15)
+        assert (high, low) == (x.max(), x.min())
+        changes = np.abs(np.diff(x))
+        assert moves == bool(np.any((changes > 0) & (changes <= 0.5 * std)))
+        assert spread_figures(x, compiled=compiled)[3] is False
+        assert distinct_values(x, compiled=compiled) == np.unique(x).size
+    assert spread_figures(records[0], 0.5, compiled=True) == spread_figures(records[0], 0.5, compiled=False)

@@ -1,8 +1,10 @@
 """Sample-by-sample loops compiled with numba, each with a pure-Python fallback that gives the same
 numbers (same operations in the same order; the tests compare the two to 1e-12).
 
-The loop here is the feedback recursion of the Hammerstein / non-linear feedback model of
-paper 001, eq. 2, y = G(q)[f(v) - h(y)] with G = B/A strictly proper:
+The loops here are the spread and the distinct values of a record (``spread_figures``,
+``distinct_values``: what the checks of a solve read) and the feedback recursion of the
+Hammerstein / non-linear feedback model of paper 001, eq. 2, y = G(q)[f(v) - h(y)] with G = B/A
+strictly proper:
 
     y(k) = [B(q) f(v)](k) - sum_{i>=1} b_i h(y(k-i)) - sum_{j>=1} a_j y(k-j),
 
@@ -41,7 +43,8 @@ def _kernel(name: str):
         try:
             _KERNELS.update(_compile())
         except ImportError:
-            _KERNELS.update(feedback=None, cascade=None, play=None, servo=None, physical_servo=None)
+            _KERNELS.update(feedback=None, cascade=None, play=None, servo=None, physical_servo=None, spread=None,
+                            distinct=None)
     return _KERNELS[name]
 
 
@@ -51,11 +54,85 @@ def _compile() -> dict:
     jit = numba.njit(cache=True, nogil=True)
     # the loops call the compiled map: each is compiled from its own code with that name bound
     scope = {**globals(), "_map_value": jit(_map_value)}
+    scope_sum = {**globals(), "interleaved_sum": jit(interleaved_sum)}
     return {"feedback": jit(types.FunctionType(_feedback_core.__code__, scope, "_feedback_core")),
             "cascade": jit(types.FunctionType(_cascade_core.__code__, scope, "_cascade_core")),
             "play": jit(_play_core),
             "servo": jit(types.FunctionType(_servo_core.__code__, scope, "_servo_core")),
-            "physical_servo": jit(_physical_servo_core)}
+            "physical_servo": jit(_physical_servo_core),
+            "spread": jit(types.FunctionType(_spread_core.__code__, scope_sum, "_spread_core")),
+            "distinct": jit(_distinct_core)}
+
+
+def spread_figures(x: np.ndarray, step_fraction: float = 0.0, compiled: bool | None = None
+                   ) -> tuple[float, float, float, bool]:
+    """(std, max, min, moves) of a finite, non-empty x in two passes (the mean, then the deviations and
+    the extremes: ``np.std``'s value to rounding, its sums in sample order); ``moves``: whether some
+    change between consecutive samples is non-zero and at most ``step_fraction`` x std (False for 0).
+    ``compiled`` as in ``feedback_loop``."""
+    use = numba_enabled() if compiled is None else compiled
+    if use:
+        kernel = _kernel("spread")
+        if kernel is None:
+            raise ImportError("numba is not available")
+        std, high, low, moves = kernel(np.ascontiguousarray(x, dtype=float).ravel(), float(step_fraction))
+        return float(std), float(high), float(low), bool(moves)
+    return _spread_core(np.asarray(x, dtype=float).ravel().tolist(), float(step_fraction))
+
+
+def _spread_core(x, step_fraction):
+    count = len(x)
+    mean = interleaved_sum(x, 0.0, False) / count
+    squares, high, low = interleaved_sum(x, mean, True), x[0], x[0]
+    for k in range(count):
+        high = x[k] if x[k] > high else high
+        low = x[k] if x[k] < low else low
+    std = math.sqrt(squares / count)
+    bound = step_fraction * std
+    for k in range(1, count if step_fraction > 0.0 else 0):
+        change = abs(x[k] - x[k - 1])
+        if 0.0 < change <= bound:
+            return std, high, low, True
+    return std, high, low, False
+
+
+def interleaved_sum(x, centre, squared):
+    """sum(x - centre) or, ``squared``, sum((x - centre)^2), in four interleaved partial sums (four
+    independent additions per step instead of one chain)."""
+    count = len(x)
+    s0 = s1 = s2 = s3 = 0.0
+    k = 0
+    while k + 4 <= count:
+        d0, d1, d2, d3 = x[k] - centre, x[k + 1] - centre, x[k + 2] - centre, x[k + 3] - centre
+        if squared:
+            d0, d1, d2, d3 = d0 * d0, d1 * d1, d2 * d2, d3 * d3
+        s0, s1, s2, s3 = s0 + d0, s1 + d1, s2 + d2, s3 + d3
+        k += 4
+    total = (s0 + s1) + (s2 + s3)
+    for j in range(k, count):
+        d = x[j] - centre
+        total += d * d if squared else d
+    return total
+
+
+def distinct_values(x: np.ndarray, compiled: bool | None = None) -> int:
+    """The number of distinct values of a finite x (``np.unique(x).size``; -0.0 and 0.0 are one).
+    ``compiled`` as in ``feedback_loop``."""
+    use = numba_enabled() if compiled is None else compiled
+    if use:
+        kernel = _kernel("distinct")
+        if kernel is None:
+            raise ImportError("numba is not available")
+        return int(kernel(np.ascontiguousarray(x, dtype=float).ravel()))
+    return _distinct_core(np.asarray(x, dtype=float).ravel())
+
+
+def _distinct_core(x):
+    ordered = np.sort(x)
+    count = 1 if ordered.size else 0
+    for k in range(1, ordered.size):
+        count += ordered[k] != ordered[k - 1]
+    return count
 
 
 def feedback_loop(forced: np.ndarray, b_past: np.ndarray, a_past: np.ndarray, knots: np.ndarray,

@@ -1,7 +1,9 @@
 """The free run of a polynomial Hammerstein model on one run, compiled: what
 ``IdentificationResult.free_run`` computes for the streaming engine's common model (CLS's
 y = B(q)/A(q) F(v) with F a polynomial), in one numba loop instead of four ``lfilter`` calls and
-their array copies (``Runs.initial_states`` and ``Runs.simulate`` of one run).
+their array copies (``Runs.initial_states`` and ``Runs.simulate`` of one run); and, for the
+engine's solves, the model's fit on the window in one call (``hammerstein_fit``: the roots of the
+linear block, the free run, fit and rms).
 
 The operations are the reference's, in its order: F(v) by Horner's rule as ``PolynomialMap``, then
 the transposed direct form II recursion of ``scipy.signal.lfilter`` (a_0 = 1, as ``LinearModel`` holds it),
@@ -12,6 +14,12 @@ so the simulation equals the reference's bit for bit where the compiler does not
 and a sum (``test_free_run_kernel`` compares them to 1e-12). The start is chosen as
 ``Runs.initial_states`` chooses it: at rest at F(v(0)) (``settle`` samples of it first) or from
 zero state, whichever explains the first min(settle, N) samples of y better.
+
+``hammerstein_fit`` computes the linear block's roots as ``LinearModel`` does (its companion
+matrices, the same LAPACK dgeev call through scipy's cython_lapack, the same sorting and cancelling
+of roots at 0: equal bit for bit, ``test_free_run_kernel``) when the model has not computed them yet,
+and keeps them as the model's; its fit and rms are those of ``result.fit_and_rms`` with the sums
+taken in sample order (equal to rounding, 1e-12).
 
 numba is imported on the first call (``import hammer_ros`` stays light); ``cache=True``,
 ``nogil=True``. None without numba (``compiled_loops.numba_enabled``): the caller runs the reference.
@@ -31,13 +39,12 @@ from .static_maps import PolynomialMap
 _KERNEL: list = []
 
 
-def hammerstein_free_run(simulate, v: np.ndarray, y: np.ndarray, settle: int) -> np.ndarray | None:
-    """The free-run output of ``simulate`` (an ``IdentificationResult.simulate``) on the one run (v, y),
-    started at rest or from zero state (module docstring), when ``simulate`` is a polynomial Hammerstein
-    model (``partial(simulate_hammerstein, nonlinearity=PolynomialMap, linear=...)``) and numba is
-    available; None otherwise (the caller simulates with ``Runs``)."""
-    parts = _polynomial_hammerstein(simulate)
-    if parts is None or not numba_enabled():
+def hammerstein_free_run(parts: tuple[np.ndarray, np.ndarray, np.ndarray], v: np.ndarray, y: np.ndarray,
+                         settle: int) -> np.ndarray | None:
+    """The free-run output on the one run (v, y) of the polynomial Hammerstein model ``parts``
+    (``polynomial_hammerstein``), started at rest or from zero state (module docstring); None without
+    numba or for an empty or uneven record (the caller simulates with ``Runs``)."""
+    if not numba_enabled():
         return None
     coefficients, b, a = parts
     v = np.ascontiguousarray(v, dtype=float)
@@ -49,8 +56,31 @@ def hammerstein_free_run(simulate, v: np.ndarray, y: np.ndarray, settle: int) ->
     return out
 
 
-def _polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(F's coefficients, b, a, both of one length) of a polynomial Hammerstein simulator, or None."""
+def hammerstein_fit(parts: tuple[np.ndarray, np.ndarray, np.ndarray], linear, v: np.ndarray, y: np.ndarray,
+                    settle: int | None) -> tuple[float, float, int] | None:
+    """(fit percent, rms, settle) of the free run (``hammerstein_free_run``) of the polynomial Hammerstein
+    model ``parts`` (``polynomial_hammerstein``) with linear block ``linear`` on the one run (v, y), in
+    one compiled call; ``settle`` None: the rest length from the block's roots, computed here and kept
+    as the model's when it has none yet (module docstring). None where the reference decides (no
+    numba, an empty or uneven record, coefficients not finite)."""
+    v = np.ascontiguousarray(v, dtype=float)
+    y = np.ascontiguousarray(y, dtype=float)
+    if v.size == 0 or y.size != v.size or not numba_enabled():
+        return None
+    coefficients, b, a = parts
+    known = linear.__dict__.get("_zpk")  # LinearModel's cached (zeros, poles)
+    ok, fit, rms, settle, zeros, poles = _kernel(1)(v, y, coefficients, b, a, linear.b, linear.a,
+                                                    -1 if settle is None else int(settle), known is None)
+    if not ok:
+        return None
+    if known is None:
+        linear.__dict__["_zpk"] = (zeros, poles)  # bit for bit LinearModel._zpk's
+    return float(fit), float(rms), int(settle)
+
+
+def polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(F's coefficients, b, a, both of one length) of a polynomial Hammerstein simulator
+    (``partial(simulate_hammerstein, nonlinearity=PolynomialMap, linear=...)``), or None."""
     if not isinstance(simulate, partial) or simulate.func is not simulate_hammerstein or simulate.args:
         return None
     nonlinearity, linear = simulate.keywords.get("nonlinearity"), simulate.keywords.get("linear")
@@ -62,16 +92,28 @@ def _polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return np.ascontiguousarray(nonlinearity.coefficients, dtype=float), b, a
 
 
-def _kernel():
+def _kernel(which: int = 0):
+    """0: ``_free_run_core``, 1: ``_fit_core`` (compiled on the first call)."""
     if not _KERNEL:
         import numba
+        from numba.np.linalg import _LAPACK  # numba's own binding of scipy's LAPACK (what np.linalg.eigvals calls)
 
         jit = numba.njit(cache=True, nogil=True)
-        polynomial = jit(_polynomial)  # each loop compiled from its own code with its callees bound
-        recursion = jit(types.FunctionType(_filter.__code__, {**globals(), "_polynomial": polynomial}, "_filter"))
-        _KERNEL.append(jit(types.FunctionType(_free_run_core.__code__, {**globals(), "_filter": recursion},
-                                              "_free_run_core")))
-    return _KERNEL[0]
+
+        def bound(function, **callees):  # each loop compiled from its own code with its callees bound
+            return jit(types.FunctionType(function.__code__, {**globals(), **callees}, function.__name__))
+
+        dgeev = _LAPACK().numba_ez_rgeev(numba.types.float64)  # dgeev after its workspace query
+        from .cls_numerics import sorted_roots  # ``linear._sorted_roots``, compiled
+        from .compiled_loops import interleaved_sum
+
+        recursion = bound(_filter, _polynomial=jit(_polynomial))
+        free_run = bound(_free_run_core, _filter=recursion)
+        roots = bound(_cancelled_roots, _polynomial_roots=bound(_polynomial_roots, _dgeev=dgeev),
+                      _sorted_roots=sorted_roots)
+        _KERNEL.extend([free_run, bound(_fit_core, _free_run_core=free_run, _cancelled_roots=roots,
+                                        _rest_length=jit(_rest_length), interleaved_sum=jit(interleaved_sum))])
+    return _KERNEL[which]
 
 
 def _polynomial(c, x):
@@ -116,3 +158,95 @@ def _free_run_core(v, y, c, b, a, settle, out):
             errors[which] += (y[k] - out[k]) ** 2
     at_rest = np.isfinite(errors[1]) and (errors[1] < errors[0] or not np.isfinite(errors[0]))
     _filter(v, c, b, a, rest if at_rest else zero, 0, v.size, out)
+
+
+def _fit_core(v, y, c, b, a, model_b, model_a, settle, with_roots):
+    """(ok, fit, rms, settle, zeros, poles): ``IdentificationResult.free_run``'s output on (v, y) and
+    ``fit_and_rms`` of it; the roots of (model_b, model_a) with ``with_roots`` (else empty), the rest
+    length from the poles when ``settle`` < 0. Not ok (nothing computed) when the model's coefficients
+    are not finite (the reference raises there)."""
+    zeros = poles = np.zeros(0, np.complex128)
+    for x in (c, model_b, model_a):
+        for value in x:
+            if not np.isfinite(value):
+                return False, np.nan, np.nan, 0, zeros, poles
+    if with_roots or settle < 0:
+        zeros, poles = _cancelled_roots(model_b, model_a)
+    if settle < 0:
+        settle = _rest_length(poles)
+    out = np.empty(v.size)
+    _free_run_core(v, y, c, b, a, settle, out)
+    for k in range(y.size):
+        out[k] = y[k] - out[k]
+    error = np.sqrt(interleaved_sum(out, 0.0, True))  # noqa: F821 (bound by _kernel)
+    spread = np.sqrt(interleaved_sum(y, interleaved_sum(y, 0.0, False) / y.size, True))  # noqa: F821
+    fit = np.nan if spread == 0.0 else 100.0 * (1.0 - error / spread)
+    return True, fit, error / np.sqrt(y.size), settle, zeros, poles
+
+
+def _rest_length(poles):
+    """``runs.rest_length``: three times ``simulation_error.settling_samples`` (cap 2000)."""
+    radius = 0.0
+    for p in poles:
+        radius = max(radius, abs(p))
+    if radius <= 1e-3:
+        return 60
+    if radius >= 1.0:
+        return 6000
+    return 3 * int(min(2000.0, max(20.0, np.ceil(np.log(1e-3) / np.log(radius)))))
+
+
+def _cancelled_roots(b, a):
+    """``LinearModel._zpk``: the roots of b and a as polynomials in z of one degree (roots at 0 for the
+    shorter one's missing powers), the common roots at 0 cancelled, each sorted."""
+    length = max(a.size, b.size)
+    any_b = False
+    for x in b:
+        any_b = any_b or x != 0.0
+    zeros = _polynomial_roots(b, length) if any_b else np.zeros(0, np.complex128)
+    poles = _polynomial_roots(a, length)
+    keep_z, keep_p = np.ones(zeros.size, np.bool_), np.ones(poles.size, np.bool_)
+    while True:  # ``while 0j in z and 0j in p``: remove the first of each
+        i = j = -1
+        for k in range(zeros.size):
+            if keep_z[k] and zeros[k] == 0j:
+                i = k
+                break
+        for k in range(poles.size):
+            if keep_p[k] and poles[k] == 0j:
+                j = k
+                break
+        if i < 0 or j < 0:
+            break
+        keep_z[i] = keep_p[j] = False
+    return _sorted_roots(zeros[keep_z]), _sorted_roots(poles[keep_p])  # noqa: F821 (cls_numerics.sorted_roots, bound by _kernel)
+
+
+def _polynomial_roots(coefficients, length):
+    """``linear._polynomial_roots``: the eigenvalues of the companion matrix of the coefficients from the
+    first to the last non-zero one (LAPACK dgeev, eigenvalues only: scipy's, as ``linear.eigenvalues``
+    calls it; of a small matrix its result does not depend on the workspace), then a root at 0 per
+    trailing zero; unsorted, in LAPACK's order."""
+    first = last = -1
+    for i in range(coefficients.size):
+        if coefficients[i] != 0.0:
+            last = i
+            if first < 0:
+                first = i
+    n = last - first
+    out = np.zeros(max(n, 0) + length - 1 - last, np.complex128)
+    if n > 0:
+        companion = np.zeros((n, n))  # column-major below: its transpose, C-ordered
+        for i in range(1, n):
+            companion[i - 1, i] = 1.0
+        for j in range(n):
+            companion[j, 0] = -coefficients[first + 1 + j] / coefficients[first]
+        real, imaginary, unused = np.empty(n), np.empty(n), np.empty(1)
+        info = _dgeev(100, 78, 78, n, companion.ctypes, n, real.ctypes, imaginary.ctypes,  # noqa: F821 (bound by _kernel)
+                      unused.ctypes, 1, unused.ctypes, 1)  # kind 'd', eigenvalues only ('N', 'N')
+        if info != 0:
+            raise ValueError("Eigenvalues did not converge")
+        for i in range(n):
+            out[i] = complex(real[i], imaginary[i])
+    return out
+

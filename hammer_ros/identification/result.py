@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
 
-from .free_run_kernel import hammerstein_free_run
+from .free_run_kernel import hammerstein_fit, hammerstein_free_run, polynomial_hammerstein
 from .linear import LinearModel
 from .runs import Runs, rest_length
 from .trust import ModelWarning, model_warnings, warnings_json
@@ -85,25 +86,50 @@ class IdentificationResult:
     def zeros(self) -> np.ndarray:
         return self.linear.zeros
 
+    @cached_property
+    def _polynomial_hammerstein(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """``free_run_kernel.polynomial_hammerstein`` of the simulator (the model is immutable)."""
+        return polynomial_hammerstein(self.simulate)
+
+    @cached_property
+    def _rest_length(self) -> int:
+        """``runs.rest_length`` of the poles: the samples of a start at rest."""
+        return rest_length(self.linear.poles)
+
     def free_run(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None) -> np.ndarray:
         """The model's free-run output on the record (v, y): every run simulated from its own start,
         at rest at its first input or from zero state, whichever explains its first samples
         (``Runs.initial_states``)."""
         runs = Runs.one(np.size(v)) if runs is None else runs
-        settle = rest_length(self.linear.poles)
-        if runs.count == 1:  # a polynomial Hammerstein model (CLS's) in one compiled loop, the same numbers
-            compiled = hammerstein_free_run(self.simulate, v, y, settle)
+        settle = self._rest_length
+        if runs.count == 1 and self._polynomial_hammerstein is not None:  # CLS's model: one compiled loop,
+            compiled = hammerstein_free_run(self._polynomial_hammerstein, v, y, settle)  # the same numbers
             if compiled is not None:
                 return compiled
         return runs.simulate(self.simulate, v, settle, runs.initial_states(self.simulate, v, y, settle))
 
+    def window_fit(self, v: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+        """(fit percent, rms) of the free run on the one run (v, y): ``fit_and_rms(y, free_run(v, y))``,
+        for a polynomial Hammerstein model (CLS's) in one compiled call with the poles and the rest length
+        when the model has none yet (``free_run_kernel.hammerstein_fit``: the same free run and roots,
+        the figures' sums in sample order, so equal to rounding); what the streaming engine's solves take."""
+        if self._polynomial_hammerstein is not None:
+            compiled = hammerstein_fit(self._polynomial_hammerstein, self.linear, v, y,
+                                       self.__dict__.get("_rest_length"))
+            if compiled is not None:
+                fit, rms, self.__dict__["_rest_length"] = compiled  # the cached property's value
+                return fit, rms
+        return fit_and_rms(y, self.free_run(v, y))
+
     def evaluate(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None,
-                 input_assumptions: bool = True) -> Evaluation:
+                 input_assumptions: bool = True, compiled: bool = False) -> Evaluation:
         """The model on the record (v, y): its free-run fit and rms (``free_run``) and its own warnings
         there (``trust.model_warnings``; ``input_assumptions=False``: without ``input_not_white``, for a
-        caller that reads only the ``UNTRUSTED`` ones)."""
+        caller that reads only the ``UNTRUSTED`` ones). ``compiled`` (one run): fit and rms by
+        ``window_fit`` (equal to rounding), as the streaming engine evaluates."""
         y = np.asarray(y, dtype=float)
-        fit, rms = fit_and_rms(y, self.free_run(v, y, runs))
+        fit, rms = (self.window_fit(v, y) if compiled and runs is None
+                    else fit_and_rms(y, self.free_run(v, y, runs)))
         return Evaluation(fit, rms, model_warnings(self, np.asarray(v, dtype=float), y, fit, input_assumptions))
 
     def to_json(self, v: np.ndarray | None = None, y: np.ndarray | None = None, runs: Runs | None = None,

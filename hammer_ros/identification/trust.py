@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from .compiled_loops import distinct_values, spread_figures
+
 POOR_FIT_PERCENT = 0.0
 QUANTISATION_STEPS = 2.0  # a spread of fewer quantisation steps than this is within the quantisation
 STILL_INPUT = 1e-3  # an input whose std is below this fraction of its level barely varies
@@ -88,28 +90,13 @@ def quantisation_step(x: np.ndarray) -> float:
     return float(np.diff(levels).min()) if levels.size > 1 else math.inf
 
 
-def _std(x: np.ndarray) -> float:
-    """The standard deviation of x (``np.std``'s value without its dispatch)."""
-    centred = x - x.sum() / x.size
-    return math.sqrt(float(centred @ centred) / x.size)
-
-
-def _moves_beyond(x: np.ndarray, step_bound: float) -> bool:
-    """Whether some change between consecutive samples of x is non-zero and at most ``step_bound``
-    (std / QUANTISATION_STEPS): then so is the quantisation step (at most any non-zero difference of
-    two values: rounding is monotone), and the spread is not within the quantisation; decided without
-    ``quantisation_step``'s sort."""
-    changes = np.abs(np.diff(x))
-    return bool(np.any((changes > 0.0) & (changes <= step_bound)))
-
-
 def _distinct_values(x: np.ndarray, enough: int) -> int:
     """The number of distinct values of x, or some number >= ``enough`` when it has that many (the
     first samples usually show it: a random input differs at every sample)."""
     if enough <= 2:
         return enough
-    head = np.unique(x[:64]).size
-    return head if head >= enough else int(np.unique(x).size)
+    head = distinct_values(x[:64])
+    return head if head >= enough else distinct_values(x)
 
 
 def map_levels_needed(nonlinearity: Any) -> int:
@@ -137,14 +124,17 @@ def excitation_warnings(v: np.ndarray, y: np.ndarray, nonlinearity: Any = None,
     if v.size == 0 or y.size == 0:
         return ()
     out = []
-    spread = _std(y)
-    if spread == 0.0 or not _moves_beyond(y, spread / QUANTISATION_STEPS):
+    # a non-zero change of at most std / QUANTISATION_STEPS bounds the quantisation step (at most any non-zero
+    # difference of two values: rounding is monotone): the spread is then not within it, decided without the sort
+    spread, _, _, moves = spread_figures(y, 1.0 / QUANTISATION_STEPS)
+    if spread == 0.0 or not moves:
         step = quantisation_step(y)
         if spread < QUANTISATION_STEPS * step or spread == 0.0:
             out.append(ModelWarning("not_exciting", f"the output varies within its quantisation (std {spread:.3g}, "
                                                     f"{np.unique(y).size} distinct values {step:.3g} apart): the "
                                                     "input did not move it"))
-    spread, level = _std(v), float(max(v.max(), -v.min()))
+    spread, high, low, _ = spread_figures(v)
+    level = max(high, -low)
     if spread <= STILL_INPUT * level:
         out.append(ModelWarning("not_exciting", f"the input barely varies (std {spread:.3g} at a level of "
                                                 f"{level:.3g}): what it excites is within noise"))

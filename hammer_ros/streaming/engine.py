@@ -58,10 +58,11 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ..errors import HammerRosError, UsageError
+from ..identification.compiled_loops import spread_figures
 from ..identification.instrumental import refinement_input
 from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
-from ..identification.result import IdentificationResult, fit_percent
+from ..identification.result import IdentificationResult
 from ..identification.trust import ModelWarning, untrusted
 from .aligner import StreamAligner
 from .config import CLS_STRUCTURES, KEEP_MARGIN, PE_CONDITION_LIMIT, EngineConfig, EngineStats
@@ -313,7 +314,8 @@ def _excitation(snapshot: EngineSnapshot) -> tuple[float, float, float]:
         return math.nan, math.nan, math.nan
     with np.errstate(all="ignore"):
         cond = excitation_condition_number(snapshot.phi_vv, cfg.tau_max, cfg.order)
-    return cond, float(v.std()), float(np.abs(v).max())
+    spread, high, low, _ = spread_figures(v)  # np.std to rounding
+    return cond, spread, max(high, -low)
 
 
 def _window_status(snapshot: EngineSnapshot, cond: float, spread: float, peak: float) -> tuple[str, str]:
@@ -379,7 +381,8 @@ def estimate_snapshot(snapshot: EngineSnapshot, document: bool = True) -> Estima
                 from ..identification.refinement import refine_result
 
                 result = refine_result(result, refinement_input(v, reference), y)
-            evaluation = result.evaluate(v, y, input_assumptions=document)  # the outcome reads UNTRUSTED ones only
+            evaluation = result.evaluate(v, y, input_assumptions=document,  # the outcome reads UNTRUSTED ones only
+                                         compiled=True)
             doc = result.to_json(v, y, evaluation=evaluation) if document else None
     except Exception as exc:  # a bug in a method must not stop the node: reported, counted, never fatal
         status, reason = _failure(cfg.method, exc)
@@ -475,7 +478,7 @@ def document_outcome(outcome: SolveOutcome, v: np.ndarray, y: np.ndarray) -> Sol
     """An ok outcome of ``solve_snapshot(..., document=False)`` on the window (v, y) with the
     ``doc`` and ``markov`` that ``document=True`` gives."""
     with np.errstate(all="ignore"):
-        doc = outcome.result.to_json(v, y)
+        doc = outcome.result.to_json(v, y, evaluation=outcome.result.evaluate(v, y, compiled=True))
     return replace(outcome, doc=doc, markov=_markov(outcome.result, doc))
 
 
@@ -497,7 +500,7 @@ def _published_fits_better(published: IdentificationResult | None, v: np.ndarray
     simulate it better than the instrumented one."""
     if published is None:
         return ""
-    old_fit = fit_percent(y, published.free_run(v, y))
+    old_fit = published.window_fit(v, y)[0]
     new = -np.inf if new_fit is None or not math.isfinite(new_fit) else new_fit
     if not np.isfinite(old_fit) or new >= old_fit - KEEP_MARGIN:
         return ""
