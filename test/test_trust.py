@@ -260,3 +260,21 @@ def test_spread_and_levels_are_numpys(compiled):
         assert spread_figures(x, compiled=compiled)[3] is False
         assert distinct_values(x, compiled=compiled) == np.unique(x).size
     assert spread_figures(records[0], 0.5, compiled=True) == spread_figures(records[0], 0.5, compiled=False)
+
+
+def test_toeplitz_condition_is_lapacks_either_way():
+    """The excitation check's condition number compiled equals its Python form (the same LAPACK dsyevd)
+    bit for bit, on white, coloured and constant inputs' correlations; inf for a rank-one matrix."""
+    from hammer_ros.identification.compiled_loops import toeplitz_condition
+    from hammer_ros.identification.correlation import cross_correlation
+
+    rng = np.random.default_rng(8)
+    inputs = [rng.standard_normal(3000), signal.lfilter([1.0], [1.0, -0.95], rng.standard_normal(3000)),
+              np.sin(0.3 * np.arange(3000)), np.full(3000, 2.0)]
+    for v in inputs:
+        phi = cross_correlation(v, v, 20)
+        for size in (1, 3, 7, 21):
+            compiled = toeplitz_condition(phi, 20, size, compiled=True)
+            assert compiled == toeplitz_condition(phi, 20, size, compiled=False)
+    phi = cross_correlation(np.full(3000, 2.0), np.full(3000, 2.0), 20)
+    assert toeplitz_condition(phi, 20, 7) == np.inf

@@ -1,8 +1,9 @@
 """Sample-by-sample loops compiled with numba, each with a pure-Python fallback that gives the same
 numbers (same operations in the same order; the tests compare the two to 1e-12).
 
-The loops here are the spread and the distinct values of a record (``spread_figures``,
-``distinct_values``: what the checks of a solve read) and the feedback recursion of the
+The loops here are the spread and the distinct values of a record and the condition of a
+correlation matrix (``spread_figures``, ``distinct_values``, ``toeplitz_condition``: what the checks
+of a solve read) and the feedback recursion of the
 Hammerstein / non-linear feedback model of paper 001, eq. 2, y = G(q)[f(v) - h(y)] with G = B/A
 strictly proper:
 
@@ -44,7 +45,7 @@ def _kernel(name: str):
             _KERNELS.update(_compile())
         except ImportError:
             _KERNELS.update(feedback=None, cascade=None, play=None, servo=None, physical_servo=None, spread=None,
-                            distinct=None)
+                            distinct=None, condition=None)
     return _KERNELS[name]
 
 
@@ -61,7 +62,9 @@ def _compile() -> dict:
             "servo": jit(types.FunctionType(_servo_core.__code__, scope, "_servo_core")),
             "physical_servo": jit(_physical_servo_core),
             "spread": jit(types.FunctionType(_spread_core.__code__, scope_sum, "_spread_core")),
-            "distinct": jit(_distinct_core)}
+            "distinct": jit(_distinct_core),
+            "condition": jit(types.FunctionType(_condition_core.__code__, {**globals(), "_condition": jit(_condition)},
+                                                "_condition_core"))}
 
 
 def spread_figures(x: np.ndarray, step_fraction: float = 0.0, compiled: bool | None = None
@@ -125,6 +128,43 @@ def distinct_values(x: np.ndarray, compiled: bool | None = None) -> int:
             raise ImportError("numba is not available")
         return int(kernel(np.ascontiguousarray(x, dtype=float).ravel()))
     return _distinct_core(np.asarray(x, dtype=float).ravel())
+
+
+def toeplitz_condition(phi: np.ndarray, centre: int, size: int, compiled: bool | None = None) -> float:
+    """cond(R) = lambda_max / lambda_min of the symmetric Toeplitz matrix R[i, j] = r(|i - j|), i, j < ``size``,
+    r(k) = (phi[centre + k] + phi[centre - k]) / 2 (a correlation function, index ``centre`` = lag 0); inf
+    when lambda_max <= 0 or lambda_min <= 1e-300 lambda_max. The eigenvalues by LAPACK dsyevd (lower
+    triangle, eigenvalues only) compiled as in Python (``linear.symmetric_eigenvalues``: scipy's LAPACK,
+    which numba calls too), so the same numbers. ``compiled`` as in ``feedback_loop`` (entries not finite:
+    the Python form, as LAPACK answers them there)."""
+    phi = np.ascontiguousarray(phi, dtype=float)
+    use = numba_enabled() if compiled is None else compiled
+    if use and np.isfinite(phi[centre - size + 1 : centre + size]).all():
+        kernel = _kernel("condition")
+        if kernel is None:
+            raise ImportError("numba is not available")
+        return float(kernel(phi, int(centre), int(size)))
+    from .linear import symmetric_eigenvalues
+
+    one_sided = 0.5 * (phi[centre : centre + size] + phi[centre::-1][:size])
+    index = np.arange(size)
+    return _condition(symmetric_eigenvalues(one_sided[np.abs(index[:, None] - index[None, :])]))
+
+
+def _condition_core(phi, centre, size):
+    matrix = np.empty((size, size))
+    for i in range(size):
+        for j in range(size):
+            k = abs(i - j)
+            matrix[i, j] = 0.5 * (phi[centre + k] + phi[centre - k])
+    return _condition(np.linalg.eigvalsh(matrix))
+
+
+def _condition(eigenvalues):
+    """lambda_max / lambda_min of ascending eigenvalues, inf for a matrix not positive definite."""
+    if eigenvalues[-1] <= 0 or eigenvalues[0] <= eigenvalues[-1] * 1e-300:
+        return np.inf
+    return eigenvalues[-1] / eigenvalues[0]
 
 
 def _distinct_core(x):

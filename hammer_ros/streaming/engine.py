@@ -58,9 +58,8 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from ..errors import HammerRosError, UsageError
-from ..identification.compiled_loops import spread_figures
+from ..identification.compiled_loops import spread_figures, toeplitz_condition
 from ..identification.instrumental import refinement_input
-from ..identification.linear import symmetric_eigenvalues
 from ..identification.methods import identify
 from ..identification.result import IdentificationResult
 from ..identification.trust import ModelWarning, untrusted
@@ -259,13 +258,7 @@ def excitation_condition_number(phi_vv: np.ndarray, tau_max: int, order: int) ->
     (capped at tau_max + 1): the input is persistently exciting of order p when R_p is well
     conditioned (Ljung, System Identification, sec. 13.2). Uncentred, so a constant input gives a
     rank-one R_p; a sinusoid is exciting of order 2 only, a sum of s sinusoids of order 2s."""
-    p = min(2 * order + 1, tau_max + 1)
-    one_sided = 0.5 * (phi_vv[tau_max : tau_max + p] + phi_vv[tau_max::-1][:p])
-    idx = np.arange(p)
-    eig = symmetric_eigenvalues(one_sided[np.abs(idx[:, None] - idx[None, :])])
-    if eig[-1] <= 0 or eig[0] <= eig[-1] * 1e-300:
-        return float("inf")
-    return float(eig[-1] / eig[0])
+    return toeplitz_condition(phi_vv, tau_max, min(2 * order + 1, tau_max + 1))
 
 
 
@@ -436,8 +429,7 @@ def decide_outcome(snapshot: EngineSnapshot, estimate: Estimate, document: bool 
     except Exception as exc:
         status, reason = _failure(cfg.method, exc)
         return outcome(False, reason, status=status)
-    finite = np.isfinite(result.linear.a).all() and np.isfinite(result.linear.b).all()
-    if not finite:
+    if not all(map(math.isfinite, result.linear.a.tolist() + result.linear.b.tolist())):
         return outcome(False, f"{cfg.method}: non-finite model coefficients", status="failed")
     if kept:
         return outcome(False, f"kept the published model: it fits the window better ({kept})", status="kept")
