@@ -49,6 +49,17 @@ def _kernel(name: str):
     return _KERNELS[name]
 
 
+def _chosen(name: str, compiled: bool | None):
+    """The kernel ``name`` when the compiled form is chosen (``compiled`` None: when numba is enabled),
+    None for the Python form; ImportError when it is forced without numba."""
+    if not (numba_enabled() if compiled is None else compiled):
+        return None
+    kernel = _kernel(name)
+    if kernel is None:
+        raise ImportError("numba is not available")
+    return kernel
+
+
 def _compile() -> dict:
     import numba
 
@@ -73,11 +84,8 @@ def spread_figures(x: np.ndarray, step_fraction: float = 0.0, compiled: bool | N
     the extremes: ``np.std``'s value to rounding, its sums in sample order); ``moves``: whether some
     change between consecutive samples is non-zero and at most ``step_fraction`` x std (False for 0).
     ``compiled`` as in ``feedback_loop``."""
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel("spread")
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen("spread", compiled)
+    if kernel is not None:
         std, high, low, moves = kernel(np.ascontiguousarray(x, dtype=float).ravel(), float(step_fraction))
         return float(std), float(high), float(low), bool(moves)
     return _spread_core(np.asarray(x, dtype=float).ravel().tolist(), float(step_fraction))
@@ -121,11 +129,8 @@ def interleaved_sum(x, centre, squared):
 def distinct_values(x: np.ndarray, compiled: bool | None = None) -> int:
     """The number of distinct values of a finite x (``np.unique(x).size``; -0.0 and 0.0 are one).
     ``compiled`` as in ``feedback_loop``."""
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel("distinct")
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen("distinct", compiled)
+    if kernel is not None:
         return int(kernel(np.ascontiguousarray(x, dtype=float).ravel()))
     return _distinct_core(np.asarray(x, dtype=float).ravel())
 
@@ -138,11 +143,8 @@ def toeplitz_condition(phi: np.ndarray, centre: int, size: int, compiled: bool |
     which numba calls too), so the same numbers. ``compiled`` as in ``feedback_loop`` (entries not finite:
     the Python form, as LAPACK answers them there)."""
     phi = np.ascontiguousarray(phi, dtype=float)
-    use = numba_enabled() if compiled is None else compiled
-    if use and np.isfinite(phi[centre - size + 1 : centre + size]).all():
-        kernel = _kernel("condition")
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen("condition", compiled)
+    if kernel is not None and np.isfinite(phi[centre - size + 1 : centre + size]).all():
         return float(kernel(phi, int(centre), int(size)))
     from .linear import symmetric_eigenvalues
 
@@ -186,11 +188,8 @@ def feedback_loop(forced: np.ndarray, b_past: np.ndarray, a_past: np.ndarray, kn
             np.ascontiguousarray(a_past, dtype=float), np.ascontiguousarray(knots, dtype=float),
             np.ascontiguousarray(values, dtype=float), np.ascontiguousarray(slopes, dtype=float),
             float(curvature_left), float(curvature_right))
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel("feedback")
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen("feedback", compiled)
+    if kernel is not None:
         lead = max(args[1].size, args[2].size)
         y, hy = np.zeros(lead + args[0].size), np.zeros(lead + args[0].size)
         kernel(*args, y, hy)
@@ -271,11 +270,8 @@ def _map_arrays(m) -> list[np.ndarray]:
 def _recursion(name: str, core, args: list, compiled: bool | None) -> np.ndarray:
     """Run the recursion ``core(*args, y)`` whose output y has the length of ``args[0]``: its numba
     kernel ``name`` (``compiled`` as in ``feedback_loop``), or the core itself on lists."""
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel(name)
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen(name, compiled)
+    if kernel is not None:
         y = np.empty(args[0].size)
         kernel(*args, y)
         return y
@@ -297,11 +293,8 @@ def _cascade_core(drive, k1, v1, s1, l1, r1, kg, vg, sg, lg, rg, k2, v2, s2, l2,
 def play(v: np.ndarray, half: float, initial: float, compiled: bool | None = None) -> np.ndarray:
     """The play operator's recursion z(k) = min(max(z(k-1), v(k) - half), v(k) + half), z(-1) = initial."""
     v = np.ascontiguousarray(v, dtype=float)
-    use = numba_enabled() if compiled is None else compiled
-    if use:
-        kernel = _kernel("play")
-        if kernel is None:
-            raise ImportError("numba is not available")
+    kernel = _chosen("play", compiled)
+    if kernel is not None:
         out = np.empty(v.size)
         kernel(v, float(half), float(initial), out)
         return out
