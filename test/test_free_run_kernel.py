@@ -1,13 +1,18 @@
 """The compiled free run of a polynomial Hammerstein model (``free_run_kernel``) against the reference
 (``Runs.initial_states`` and ``Runs.simulate`` of one run: a polynomial map, then ``lfilter``), and its
-fit on a window (``hammerstein_fit``: the roots bit for bit ``LinearModel``'s, fit and rms to rounding)."""
+fit on a window (``window_fit``: the roots bit for bit ``LinearModel``'s, fit and rms to rounding)."""
 
 from functools import partial
 
 import numpy as np
 import pytest
 
-from hammer_ros.identification.free_run_kernel import hammerstein_fit, hammerstein_free_run, polynomial_hammerstein
+from hammer_ros.identification.free_run_kernel import (
+    hammerstein_fit,
+    hammerstein_free_run,
+    polynomial_hammerstein,
+    remember_roots,
+)
 from hammer_ros.identification.linear import LinearModel
 from hammer_ros.identification.result import IdentificationResult, fit_and_rms
 from hammer_ros.identification.runs import Runs, rest_length
@@ -60,11 +65,17 @@ def test_other_models_and_no_numba_take_the_reference(monkeypatch):
     polynomial = partial(simulate_hammerstein, nonlinearity=PolynomialMap(np.array([0.0, 1.0])), linear=linear)
     parts = polynomial_hammerstein(polynomial)
     assert hammerstein_free_run(parts, v, v, 10) is not None
-    assert hammerstein_fit(parts, linear, v, v[::-1], None) is not None
-    assert hammerstein_fit(parts, linear, v, v[:-1], None) is None  # uneven: the reference decides
+    assert hammerstein_fit(parts, v, v[::-1], 10) is not None
+    assert hammerstein_fit(parts, v, v[:-1], 10) is None  # uneven: the reference decides
+    unstable = LinearModel(np.array([0.0, 1.0]), np.array([1.0, np.nan]))
+    remember_roots(unstable)  # not finite: left to LinearModel, which raises
+    assert "_zpk" not in unstable.__dict__
     monkeypatch.setenv("HAMMER_ROS_NO_NUMBA", "1")
     assert hammerstein_free_run(parts, v, v, 10) is None
-    assert hammerstein_fit(parts, linear, v, v, None) is None
+    assert hammerstein_fit(parts, v, v, 10) is None
+    fresh = LinearModel(linear.b, linear.a)
+    remember_roots(fresh)
+    assert "_zpk" not in fresh.__dict__
     result = IdentificationResult("x", linear, polynomial)
     assert result.window_fit(v, v[::-1]) == fit_and_rms(v[::-1], result.free_run(v, v[::-1]))
 
@@ -94,7 +105,6 @@ def test_window_fit_has_the_reference_roots_and_figures(seed):
         reference = LinearModel(b, a)
         np.testing.assert_array_equal(result.zeros, reference.zeros, strict=True)
         np.testing.assert_array_equal(result.poles, reference.poles, strict=True)
-        assert result._rest_length == rest_length(reference.poles)
         expected_fit, expected_rms = fit_and_rms(y, IdentificationResult("x", reference, simulate).free_run(v, y))
         assert fit == pytest.approx(expected_fit, rel=1e-12, abs=1e-12)
         assert rms == pytest.approx(expected_rms, rel=1e-12)

@@ -81,8 +81,9 @@ def _compile() -> dict:
 def spread_figures(x: np.ndarray, step_fraction: float = 0.0, compiled: bool | None = None
                    ) -> tuple[float, float, float, bool]:
     """(std, max, min, moves) of a finite, non-empty x in two passes (the mean, then the deviations and
-    the extremes: ``np.std``'s value to rounding, its sums in sample order); ``moves``: whether some
-    change between consecutive samples is non-zero and at most ``step_fraction`` x std (False for 0).
+    the extremes: ``np.std``'s value to rounding, each sum as four interleaved partial sums); ``moves``:
+    whether some change between consecutive samples is non-zero and at most ``step_fraction`` x std
+    (False for 0).
     ``compiled`` as in ``feedback_loop``."""
     kernel = _chosen("spread", compiled)
     if kernel is not None:

@@ -2,8 +2,8 @@
 ``IdentificationResult.free_run`` computes for the streaming engine's common model (CLS's
 y = B(q)/A(q) F(v) with F a polynomial), in one numba loop instead of four ``lfilter`` calls and
 their array copies (``Runs.initial_states`` and ``Runs.simulate`` of one run); and, for the
-engine's solves, the model's fit on the window in one call (``hammerstein_fit``: the roots of the
-linear block, the free run, fit and rms).
+engine's solves, the model's fit on the window in one call (``hammerstein_fit``: the free run, fit
+and rms) and the roots of its linear block (``remember_roots``).
 
 The operations are the reference's, in its order: F(v) by Horner's rule as ``PolynomialMap``, then
 the transposed direct form II recursion of ``scipy.signal.lfilter`` (a_0 = 1, as ``LinearModel`` holds it),
@@ -15,11 +15,11 @@ and a sum (``test_free_run_kernel`` compares them to 1e-12). The start is chosen
 ``Runs.initial_states`` chooses it: at rest at F(v(0)) (``settle`` samples of it first) or from
 zero state, whichever explains the first min(settle, N) samples of y better.
 
-``hammerstein_fit`` computes the linear block's roots as ``LinearModel`` does (its companion
-matrices, the same LAPACK dgeev call through scipy's cython_lapack, the same sorting and cancelling
-of roots at 0: equal bit for bit, ``test_free_run_kernel``) when the model has not computed them yet,
-and keeps them as the model's; its fit and rms are those of ``result.fit_and_rms`` with the sums
-taken in sample order (equal to rounding, 1e-12).
+``remember_roots`` computes the linear block's roots as ``LinearModel`` does (its companion
+matrices, the same LAPACK dgeev call through numba's binding of scipy's LAPACK, the same sorting and
+cancelling of roots at 0: equal bit for bit, ``test_free_run_kernel``) and keeps them as the model's;
+``hammerstein_fit``'s fit and rms are those of ``result.fit_and_rms`` with the sums taken in four
+interleaved partial sums (equal to rounding, 1e-12).
 
 numba is imported on the first call (``import hammer_ros`` stays light); ``cache=True``,
 ``nogil=True``. None without numba (``compiled_loops.numba_enabled``): the caller runs the reference.
@@ -56,26 +56,28 @@ def hammerstein_free_run(parts: tuple[np.ndarray, np.ndarray, np.ndarray], v: np
     return out
 
 
-def hammerstein_fit(parts: tuple[np.ndarray, np.ndarray, np.ndarray], linear, v: np.ndarray, y: np.ndarray,
-                    settle: int | None) -> tuple[float, float, int] | None:
-    """(fit percent, rms, settle) of the free run (``hammerstein_free_run``) of the polynomial Hammerstein
-    model ``parts`` (``polynomial_hammerstein``) with linear block ``linear`` on the one run (v, y), in
-    one compiled call; ``settle`` None: the rest length from the block's roots, computed here and kept
-    as the model's when it has none yet (module docstring). None where the reference decides (no
-    numba, an empty or uneven record, coefficients not finite)."""
+def hammerstein_fit(parts: tuple[np.ndarray, np.ndarray, np.ndarray], v: np.ndarray, y: np.ndarray,
+                    settle: int) -> tuple[float, float] | None:
+    """(fit percent, rms) of the free run (``hammerstein_free_run``) of the polynomial Hammerstein model
+    ``parts`` (``polynomial_hammerstein``) on the one run (v, y), in one compiled call; None where the
+    reference decides (no numba, an empty or uneven record)."""
     v = np.ascontiguousarray(v, dtype=float)
     y = np.ascontiguousarray(y, dtype=float)
     if v.size == 0 or y.size != v.size or not numba_enabled():
         return None
-    coefficients, b, a = parts
-    known = linear.__dict__.get("_zpk")  # LinearModel's cached (zeros, poles)
-    ok, fit, rms, settle, zeros, poles = _kernel(1)(v, y, coefficients, b, a, linear.b, linear.a,
-                                                    -1 if settle is None else int(settle), known is None)
-    if not ok:
-        return None
-    if known is None:
-        linear.__dict__["_zpk"] = (zeros, poles)  # bit for bit LinearModel._zpk's
-    return float(fit), float(rms), int(settle)
+    fit, rms = _kernel(1)(v, y, *parts, int(settle))
+    return float(fit), float(rms)
+
+
+def remember_roots(linear) -> None:
+    """Compute a ``LinearModel``'s (zeros, poles) compiled and keep them as its ``_zpk`` (the cached
+    property's own algorithm and LAPACK call: bit for bit); nothing when it has them, without numba, or
+    when its coefficients are not finite (the property then raises as before)."""
+    if "_zpk" in linear.__dict__ or not numba_enabled():
+        return
+    ok, zeros, poles = _kernel(2)(linear.b, linear.a)
+    if ok:
+        linear.__dict__["_zpk"] = (zeros, poles)
 
 
 def polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -93,7 +95,7 @@ def polynomial_hammerstein(simulate) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def _kernel(which: int = 0):
-    """0: ``_free_run_core``, 1: ``_fit_core`` (compiled on the first call)."""
+    """0: ``_free_run_core``, 1: ``_fit_core``, 2: ``_cancelled_roots`` (compiled on the first call)."""
     if not _KERNEL:
         import numba
         from numba.np.linalg import _LAPACK  # numba's own binding of scipy's LAPACK (what np.linalg.eigvals calls)
@@ -111,8 +113,8 @@ def _kernel(which: int = 0):
         free_run = bound(_free_run_core, _filter=recursion)
         roots = bound(_cancelled_roots, _polynomial_roots=bound(_polynomial_roots, _dgeev=dgeev),
                       _sorted_roots=sorted_roots)
-        _KERNEL.extend([free_run, bound(_fit_core, _free_run_core=free_run, _cancelled_roots=roots,
-                                        _rest_length=jit(_rest_length), interleaved_sum=jit(interleaved_sum))])
+        _KERNEL.extend([free_run, bound(_fit_core, _free_run_core=free_run, interleaved_sum=jit(interleaved_sum)),
+                        roots])
     return _KERNEL[which]
 
 
@@ -160,20 +162,8 @@ def _free_run_core(v, y, c, b, a, settle, out):
     _filter(v, c, b, a, rest if at_rest else zero, 0, v.size, out)
 
 
-def _fit_core(v, y, c, b, a, model_b, model_a, settle, with_roots):
-    """(ok, fit, rms, settle, zeros, poles): ``IdentificationResult.free_run``'s output on (v, y) and
-    ``fit_and_rms`` of it; the roots of (model_b, model_a) with ``with_roots`` (else empty), the rest
-    length from the poles when ``settle`` < 0. Not ok (nothing computed) when the model's coefficients
-    are not finite (the reference raises there)."""
-    zeros = poles = np.zeros(0, np.complex128)
-    for x in (c, model_b, model_a):
-        for value in x:
-            if not np.isfinite(value):
-                return False, np.nan, np.nan, 0, zeros, poles
-    if with_roots or settle < 0:
-        zeros, poles = _cancelled_roots(model_b, model_a)
-    if settle < 0:
-        settle = _rest_length(poles)
+def _fit_core(v, y, c, b, a, settle):
+    """(fit, rms): ``fit_and_rms`` of ``IdentificationResult.free_run``'s output on (v, y)."""
     out = np.empty(v.size)
     _free_run_core(v, y, c, b, a, settle, out)
     for k in range(y.size):
@@ -181,24 +171,18 @@ def _fit_core(v, y, c, b, a, model_b, model_a, settle, with_roots):
     error = np.sqrt(interleaved_sum(out, 0.0, True))  # noqa: F821 (bound by _kernel)
     spread = np.sqrt(interleaved_sum(y, interleaved_sum(y, 0.0, False) / y.size, True))  # noqa: F821
     fit = np.nan if spread == 0.0 else 100.0 * (1.0 - error / spread)
-    return True, fit, error / np.sqrt(y.size), settle, zeros, poles
-
-
-def _rest_length(poles):
-    """``runs.rest_length``: three times ``simulation_error.settling_samples`` (cap 2000)."""
-    radius = 0.0
-    for p in poles:
-        radius = max(radius, abs(p))
-    if radius <= 1e-3:
-        return 60
-    if radius >= 1.0:
-        return 6000
-    return 3 * int(min(2000.0, max(20.0, np.ceil(np.log(1e-3) / np.log(radius)))))
+    return fit, error / np.sqrt(y.size)
 
 
 def _cancelled_roots(b, a):
-    """``LinearModel._zpk``: the roots of b and a as polynomials in z of one degree (roots at 0 for the
-    shorter one's missing powers), the common roots at 0 cancelled, each sorted."""
+    """(ok, zeros, poles), ``LinearModel._zpk``: the roots of b and a as polynomials in z of one degree
+    (roots at 0 for the shorter one's missing powers), the common roots at 0 cancelled, each sorted;
+    not ok when a coefficient is not finite."""
+    none = np.zeros(0, np.complex128)
+    for x in (b, a):
+        for value in x:
+            if not np.isfinite(value):
+                return False, none, none
     length = max(a.size, b.size)
     any_b = False
     for x in b:
@@ -219,7 +203,7 @@ def _cancelled_roots(b, a):
         if i < 0 or j < 0:
             break
         keep_z[i] = keep_p[j] = False
-    return _sorted_roots(zeros[keep_z]), _sorted_roots(poles[keep_p])  # noqa: F821 (cls_numerics.sorted_roots, bound by _kernel)
+    return True, _sorted_roots(zeros[keep_z]), _sorted_roots(poles[keep_p])  # noqa: F821 (cls_numerics.sorted_roots, bound by _kernel)
 
 
 def _polynomial_roots(coefficients, length):

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .free_run_kernel import hammerstein_fit, hammerstein_free_run, polynomial_hammerstein
+from .free_run_kernel import hammerstein_fit, hammerstein_free_run, polynomial_hammerstein, remember_roots
 from .linear import LinearModel
 from .runs import Runs, rest_length
 from .trust import ModelWarning, model_warnings, warnings_json
@@ -110,15 +110,15 @@ class IdentificationResult:
 
     def window_fit(self, v: np.ndarray, y: np.ndarray) -> tuple[float, float]:
         """(fit percent, rms) of the free run on the one run (v, y): ``fit_and_rms(y, free_run(v, y))``,
-        for a polynomial Hammerstein model (CLS's) in one compiled call with the poles and the rest length
-        when the model has none yet (``free_run_kernel.hammerstein_fit``: the same free run and roots,
-        the figures' sums in sample order, so equal to rounding); what the streaming engine's solves take."""
+        for a polynomial Hammerstein model (CLS's) with its roots computed compiled when it has none yet
+        (``free_run_kernel.remember_roots``: bit for bit) and the free run, fit and rms in one compiled
+        call (``hammerstein_fit``: the same free run, the figures' sums interleaved, so equal to
+        rounding); what the streaming engine's solves take."""
         if self._polynomial_hammerstein is not None:
-            compiled = hammerstein_fit(self._polynomial_hammerstein, self.linear, v, y,
-                                       self.__dict__.get("_rest_length"))
+            remember_roots(self.linear)
+            compiled = hammerstein_fit(self._polynomial_hammerstein, v, y, self._rest_length)
             if compiled is not None:
-                fit, rms, self.__dict__["_rest_length"] = compiled  # the cached property's value
-                return fit, rms
+                return compiled
         return fit_and_rms(y, self.free_run(v, y))
 
     def evaluate(self, v: np.ndarray, y: np.ndarray, runs: Runs | None = None,
