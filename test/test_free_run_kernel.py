@@ -33,6 +33,8 @@ MODELS = [  # (b, a, polynomial coefficients)
     ([0.0, 0.4], [2.0, -1.0], [1.0, 2.0]),  # a_0 != 1 (lfilter divides by it)
     ([0.7], [1.0], [0.0, 1.0, 0.0, 0.0]),  # a static gain, a map with trailing zeros
     ([0.0, 0.5], [1.0, -1.3], [0.0, 1.0]),  # unstable: inf and nan as the reference's
+    ([0.0, 0.2, 0.1, 0.05, 0.02], [1.0, -1.0, 0.14, 0.084, -0.018], [0.0, 1.0, -0.2]),  # order 4: the last scalar form
+    ([0.1, 0.2, 0.1, 0.05, 0.02, 0.01], [1.0, -0.9, 0.17, 0.051, -0.0092, -0.0012], [0.3, 1.0]),  # order 5: the array
 ]
 
 

@@ -13,7 +13,8 @@ the transposed direct form II recursion of ``scipy.signal.lfilter`` (a_0 = 1, as
 so the simulation equals the reference's bit for bit where the compiler does not fuse a product
 and a sum (``test_free_run_kernel`` compares them to 1e-12). The start is chosen as
 ``Runs.initial_states`` chooses it: at rest at F(v(0)) (``settle`` samples of it first) or from
-zero state, whichever explains the first min(settle, N) samples of y better.
+zero state, whichever explains the first min(settle, N) samples of y better; the run goes on from the
+chosen start's state after them (the head simulated once per start).
 
 ``remember_roots`` computes the linear block's roots as ``LinearModel`` does (its companion
 matrices, the same LAPACK dgeev call through numba's binding of scipy's LAPACK, the same sorting and
@@ -130,36 +131,79 @@ def _polynomial(c, x):
 
 
 def _filter(v, c, b, a, z, start, stop, out):
-    """``lfilter``'s recursion over u = F(v[start:stop]) from state z (updated), into out[start:stop]."""
+    """``lfilter``'s recursion over u = F(v[start:stop]) from state z (updated), into out[start:stop].
+    Up to order 4 the state is held in scalars, which stay in registers (an array's would go through
+    memory at every sample: the compiler cannot tell its stores from out's), in the same operations."""
     taps = b.size
-    for k in range(start, stop):
-        x = _polynomial(c, v[k])
-        if taps == 1:
-            out[k] = x * b[0]
-            continue
-        yk = z[0] + b[0] * x
-        for i in range(taps - 2):
-            z[i] = z[i + 1] + x * b[i + 1] - yk * a[i + 1]
-        z[taps - 2] = x * b[taps - 1] - yk * a[taps - 1]
-        out[k] = yk
+    if taps == 1:
+        for k in range(start, stop):
+            out[k] = _polynomial(c, v[k]) * b[0]
+    elif taps == 2:
+        z0, b0, b1, a1 = z[0], b[0], b[1], a[1]
+        for k in range(start, stop):
+            x = _polynomial(c, v[k])
+            yk = z0 + b0 * x
+            z0 = x * b1 - yk * a1
+            out[k] = yk
+        z[0] = z0
+    elif taps == 3:
+        z0, z1, b0, b1, b2, a1, a2 = z[0], z[1], b[0], b[1], b[2], a[1], a[2]
+        for k in range(start, stop):
+            x = _polynomial(c, v[k])
+            yk = z0 + b0 * x
+            z0 = z1 + x * b1 - yk * a1
+            z1 = x * b2 - yk * a2
+            out[k] = yk
+        z[0], z[1] = z0, z1
+    elif taps == 4:
+        z0, z1, z2, b0, b1, b2, b3, a1, a2, a3 = z[0], z[1], z[2], b[0], b[1], b[2], b[3], a[1], a[2], a[3]
+        for k in range(start, stop):
+            x = _polynomial(c, v[k])
+            yk = z0 + b0 * x
+            z0 = z1 + x * b1 - yk * a1
+            z1 = z2 + x * b2 - yk * a2
+            z2 = x * b3 - yk * a3
+            out[k] = yk
+        z[0], z[1], z[2] = z0, z1, z2
+    elif taps == 5:
+        z0, z1, z2, z3, b0, b1, b2, b3, b4 = z[0], z[1], z[2], z[3], b[0], b[1], b[2], b[3], b[4]
+        a1, a2, a3, a4 = a[1], a[2], a[3], a[4]
+        for k in range(start, stop):
+            x = _polynomial(c, v[k])
+            yk = z0 + b0 * x
+            z0 = z1 + x * b1 - yk * a1
+            z1 = z2 + x * b2 - yk * a2
+            z2 = z3 + x * b3 - yk * a3
+            z3 = x * b4 - yk * a4
+            out[k] = yk
+        z[0], z[1], z[2], z[3] = z0, z1, z2, z3
+    else:
+        for k in range(start, stop):
+            x = _polynomial(c, v[k])
+            yk = z[0] + b[0] * x
+            for i in range(taps - 2):
+                z[i] = z[i + 1] + x * b[i + 1] - yk * a[i + 1]
+            z[taps - 2] = x * b[taps - 1] - yk * a[taps - 1]
+            out[k] = yk
 
 
 def _free_run_core(v, y, c, b, a, settle, out):
     head = max(min(settle, v.size), 1)
-    zero = np.zeros(max(b.size - 1, 1))
-    rest = zero.copy()
-    held = np.full(1, v[0])
-    scratch = np.empty(1)
-    for _ in range(settle):  # at rest at v(0): settle samples of it first (``preroll_simulate``)
-        _filter(held, c, b, a, rest, 0, 1, scratch)
+    rest = np.zeros(max(b.size - 1, 1))
+    _filter(np.full(settle, v[0]), c, b, a, rest, 0, settle, np.empty(settle))  # at rest at v(0): settle samples of it
+    zero = np.zeros(rest.size)
+    first = np.empty(head)
+    _filter(v, c, b, a, zero, 0, head, first)  # the head from zero state, then at rest (into out)
+    _filter(v, c, b, a, rest, 0, head, out)
     errors = np.zeros(2)
-    for which in range(2):  # the head from zero state, then at rest
-        z = zero.copy() if which == 0 else rest.copy()
-        _filter(v, c, b, a, z, 0, head, out)
-        for k in range(head):
-            errors[which] += (y[k] - out[k]) ** 2
+    for k in range(head):
+        errors[0] += (y[k] - first[k]) ** 2
+    for k in range(head):
+        errors[1] += (y[k] - out[k]) ** 2
     at_rest = np.isfinite(errors[1]) and (errors[1] < errors[0] or not np.isfinite(errors[0]))
-    _filter(v, c, b, a, rest if at_rest else zero, 0, v.size, out)
+    if not at_rest:
+        out[:head] = first
+    _filter(v, c, b, a, rest if at_rest else zero, head, v.size, out)  # on from the chosen start's state
 
 
 def _fit_core(v, y, c, b, a, settle):
