@@ -104,15 +104,19 @@ class Listener:
     def wait_future(self, future, timeout: float = WAIT, what: str = "a service response"):
         """Spin until ``future`` is done and return its result. Given a callable making the future
         (an idempotent request), resend it every ``RESEND`` s without a response: Fast DDS drops a
-        response whose reader it has not matched yet ("failed to send response (timeout)")."""
+        response whose reader it has not matched yet ("failed to send response (timeout)"). Every
+        request sent stays awaited: the first answer counts, also one that takes longer than RESEND (a
+        diagnosis on a loaded machine), which a resend must not discard."""
         request = future if callable(future) else None
         deadline = time.monotonic() + timeout
+        sent = [] if request else [future]
         while True:
-            pending = request() if request else future
+            if request:
+                sent.append(request())
             left = deadline - time.monotonic()
             try:
-                self.wait_for(pending.done, min(left, RESEND) if request else left, what)
-                return pending.result()
+                self.wait_for(lambda: any(f.done() for f in sent), min(left, RESEND) if request else left, what)
+                return next(f for f in sent if f.done()).result()
             except AssertionError:
                 if not request or time.monotonic() >= deadline:
                     raise AssertionError(f"timed out after {timeout:g} s waiting for {what}") from None

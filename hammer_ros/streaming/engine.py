@@ -87,6 +87,26 @@ class EngineSnapshot:
     epoch: int = 0  # changes when the published model is forgotten (new engine, new settings): ``SolverProcess``
     reference_window: np.ndarray | None = None  # a closed loop's reference on the window's grid (NaN: none there)
 
+    def __reduce__(self):
+        """Pickled with its five arrays as the bytes of one (a ``SolverProcess`` sends a snapshot per
+        solve: about a fifth of the time of pickling and unpickling five numpy arrays)."""
+        arrays = [np.asarray(x, dtype=float).ravel() for x in (self.phi_vv, self.phi_yv, self.phi_yvv, self.v, self.y)]
+        return (_unpacked_snapshot, (np.concatenate(arrays).tobytes(), tuple(x.size for x in arrays), self.config,
+                                     self.weight, self.stamp, self.stats, self.published, self.reference_std,
+                                     self.epoch, self.reference_window))
+
+
+def _unpacked_snapshot(packed: bytes, sizes: tuple[int, ...], config: EngineConfig, weight: float, *rest) -> EngineSnapshot:
+    """``EngineSnapshot.__reduce__``'s inverse: the arrays as writable slices of one copy of ``packed``."""
+    values, arrays, start = np.frombuffer(packed).copy(), [], 0
+    for size in sizes:
+        arrays.append(values[start : start + size])
+        start += size
+    phi_vv, phi_yv, phi_yvv, v, y = arrays
+    stamp, stats, published, reference_std, epoch, reference_window = rest
+    return EngineSnapshot(config, phi_vv, phi_yv, phi_yvv, weight, v, y, stamp, stats, published, reference_std, epoch,
+                          reference_window)
+
 
 
 @dataclass(frozen=True, eq=False)

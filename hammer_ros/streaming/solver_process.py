@@ -48,6 +48,7 @@ dies, and is killed when it does not exit within CLOSE_TIMEOUT of ``close``.
 from __future__ import annotations
 
 import multiprocessing
+import select
 import signal
 import subprocess
 import sys
@@ -234,6 +235,8 @@ class SolverProcess:
             self._process = context.Process(target=_serve, args=(child, documents), name=name, daemon=True)
             self._process.start()
         child.close()
+        self._poller = select.poll()  # ``ready``'s check of the pipe (Connection.poll builds a selector every call)
+        self._poller.register(self._connection.fileno(), select.POLLIN)
         self._started = False  # READY received
         self._lock = threading.Lock()  # one owner's thread at a time in ``solve``, ``diagnose``, ``document``
         self.batch = batch
@@ -329,11 +332,11 @@ class SolverProcess:
         """True when ``result`` would not wait."""
         if self._outcomes:
             return True
-        if self._sent == 0 or not self._connection.poll():
+        if self._sent == 0 or not self._poller.poll(0):  # readable, or closed (then ``result`` raises)
             return False
         if not self._started:  # READY came first
             self._take_ready()
-            return self._connection.poll()
+            return bool(self._poller.poll(0))
         return True
 
     def result(self) -> SolveOutcome:
