@@ -5,6 +5,7 @@ PYTHON    ?= python3
 BIN       := $(VENV)/bin
 STAMP     := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
+TEST_WORKERS ?= 2  # pytest-xdist processes (make test TEST_WORKERS=0: one process)
 export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: setup test demo lint reproduce bench bench-deps clean
@@ -18,7 +19,7 @@ $(STAMP): setup.py requirements/lock.txt
 	touch $(STAMP)
 
 test: setup
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
 
 demo: setup
 	$(BIN)/hammer-ros demo

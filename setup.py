@@ -55,6 +55,7 @@ setup(
         "fleet": FLEET,
         "test": [
             "pytest>=7",
+            "pytest-xdist>=3.5",  # the suite on both cores (make test)
             "rosbags>=0.10",
             "ruff>=0.4",
             "colcon-common-extensions>=0.3",
