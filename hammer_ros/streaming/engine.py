@@ -96,7 +96,8 @@ class EngineSnapshot:
                                      self.epoch, self.reference_window))
 
 
-def _unpacked_snapshot(packed: bytes, sizes: tuple[int, ...], config: EngineConfig, weight: float, *rest) -> EngineSnapshot:
+def _unpacked_snapshot(packed: bytes, sizes: tuple[int, ...], config: EngineConfig, weight: float,
+                       *rest) -> EngineSnapshot:
     """``EngineSnapshot.__reduce__``'s inverse: the arrays as writable slices of one copy of ``packed``."""
     values, arrays, start = np.frombuffer(packed).copy(), [], 0
     for size in sizes:
