@@ -5,7 +5,8 @@ PYTHON    ?= python3
 BIN       := $(VENV)/bin
 STAMP     := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
-TEST_WORKERS ?= 2  # pytest-xdist processes (make test TEST_WORKERS=0: one process)
+# pytest-xdist processes of make test (make test TEST_WORKERS=0: the suite in one process)
+TEST_WORKERS ?= 2
 export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: setup test demo lint reproduce bench bench-deps clean

@@ -89,7 +89,7 @@ class EngineSnapshot:
 
     def __reduce__(self):
         """Pickled with its five arrays as the bytes of one (a ``SolverProcess`` sends a snapshot per
-        solve: about a fifth of the time of pickling and unpickling five numpy arrays)."""
+        solve: about half the time of pickling and unpickling five numpy arrays)."""
         arrays = [np.asarray(x, dtype=float).ravel() for x in (self.phi_vv, self.phi_yv, self.phi_yvv, self.v, self.y)]
         return (_unpacked_snapshot, (np.concatenate(arrays).tobytes(), tuple(x.size for x in arrays), self.config,
                                      self.weight, self.stamp, self.stats, self.published, self.reference_std,
