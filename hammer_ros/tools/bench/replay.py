@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import io
 import json
 import tempfile
@@ -101,7 +102,9 @@ def replay_section(messages: dict[int, int], repeats: int) -> Section:
                 replay_rates, bare_rates, ratios = [], [], []
                 cpu: dict[str, list[float]] = {"reading": [], "solver": [], "bare": []}
                 for _ in range(repeats):
+                    gc.collect()  # each timed part from a collected heap (below)
                     elapsed, doc = run_replay(path, batch, min(4000, samples // 2), solve_rate)
+                    gc.collect()
                     bare_cpu = time.process_time()
                     tb, decoded = _timed(lambda path=path, batch=batch: bare_decode(path, batch))
                     cpu["bare"].append(time.process_time() - bare_cpu)
@@ -121,7 +124,9 @@ def replay_section(messages: dict[int, int], repeats: int) -> Section:
     section.notes.append("replay: `hammer-ros replay BAG --input /cmd:F --output /response:F --sample-rate 1000 "
                          "--window 4000 --json` (default cls-markov), timed around the whole command in this "
                          "process; samples = aligned grid samples. bare: mcap reader + mcap_ros2 DecoderFactory, "
-                         "the field of every message of both topics into a numpy array. Replay and bare alternate; "
+                         "the field of every message of both topics into a numpy array. Replay and bare alternate, "
+                         "each after a full garbage collection (else the objects one leaves can trigger a full "
+                         "collection inside the next: measured 0.09 s of a 0.28 s bare decode); "
                          "ratio = median of the pairs. CPU: medians of the replay process's CPU seconds and of its "
                          "solver process's (forked when the periodic solves are worth it; 0 without), and of the "
                          "bare decode's (one thread: about its wall time)")
