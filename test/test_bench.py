@@ -445,3 +445,46 @@ def test_the_six_joint_row_searches_the_node_and_the_bare_subscriber_only(tmp_pa
     bench._store_node_limits([message, row], path)
     assert bench.stored_node_limits(path)["limits"] == {"1": {"node": 30_000.0, "bare": 30_000.0,
                                                               "foxglove": 30_000.0}}
+
+
+def test_the_quick_search_stops_at_its_time_budget(monkeypatch, tmp_path):
+    """``node_section`` with a budget: each message type's search gets an equal share of the time
+    left when it starts; no probe call (the runs of the subscribers at one rate) starts after its
+    share, a search stopped unconverged says "time up", and its figures are still lossless rungs
+    (the range says how wide the bracket is)."""
+    import types
+
+    from hammer_ros.tools import ros_rate_probe
+
+    now = [1000.0]
+    starts: list[tuple[int, float]] = []  # (batch, clock) at each probe call
+    limits = {"node": 34_000.0, "bare": 31_000.0, "foxglove": 30_500.0}
+
+    class Session:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+        def probe(self, rates, batch, seconds, subscribers):
+            starts.append((batch, now[0]))
+            now[0] += 2.0 * len(subscribers)  # one run: 2 s
+            return _stand_in_probe(limits, [])(rates, batch, seconds, subscribers)
+
+    monkeypatch.setattr(ros_rate_probe, "ProbeSession", Session)
+    monkeypatch.setattr(bench.node, "time", types.SimpleNamespace(monotonic=lambda: now[0]))
+    seeds = tmp_path / "limits.json"
+    seeds.write_text(json.dumps({"limits": {"1": {"node": 15_000.0, "bare": 15_000.0, "foxglove": 15_000.0}}}))
+    section = bench.node_section({1: (15_000.0,), 100: (36_000.0,)}, 1.0, 1.1, seeds, budget=20.0)
+    first = [t for b, t in starts if b == 1]
+    second = [t for b, t in starts if b == 100]
+    assert first and second and max(first) < 1010.0  # half of 20 s
+    assert min(second) > max(first) and max(second) < 1020.0
+    rows = {row["batch"]: row for row in section.rows}
+    assert rows[1]["tried"].endswith("time up")  # from 15 000 msg/s a search needs more than 5 runs
+    for row in rows.values():
+        for who, limit in limits.items():
+            figure = {"node": row["node_rate"], "bare": row["reference_rate"], "foxglove": row["foxglove_rate"]}[who]
+            assert figure <= limit
+    assert any("20 s" in note for note in section.notes)

@@ -216,7 +216,7 @@ def run_sections(plan: Plan, only: Sequence[str] = SECTION_KEYS, profile: bool =
         "ingest": lambda: ingest_section(plan.ingest_samples, plan.ingest_taus, plan.ingest_windows,
                                          plan.ingest_forgetting, plan.ingest_chunk, plan.repeats),
         "node": lambda: node_section(plan.node_rates, plan.node_seconds, plan.node_step,
-                                     joint_rates=plan.node_joint_rates),
+                                     joint_rates=plan.node_joint_rates, budget=plan.node_budget),
         "replay": lambda: replay_section(plan.replay_messages, plan.replay_repeats),
         "solve": lambda: solve_section(plan.solve_windows, plan.solve_repeats, plan.slow_solve_repeats),
         "peers": lambda: peer_section(plan.peer_frols, plan.repeats),

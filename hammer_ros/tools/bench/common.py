@@ -55,12 +55,13 @@ class Plan:
     # are then only the start without a stored figure). Either run stores its figures there.
     node_step: float | None = None
     node_joint_rates: tuple[float, ...] = ()  # the six-joint row's ladder (full bench only: 70 s more in the quick one)
+    node_budget: float | None = None  # s for the seeded searches (``node_section``); None: until they converge
 
 
 QUICK = Plan(
     name="quick", repeats=3, ingest_samples=200_000, ingest_taus=(50, 200), ingest_windows=(10_000,),
     ingest_forgetting=(1.0, 0.999), ingest_chunk=1000,
-    node_rates={1: (20000.0,), 100: (15000.0,)}, node_seconds=1.5, node_step=1.1,
+    node_rates={1: (20000.0,), 100: (15000.0,)}, node_seconds=1.5, node_step=1.1, node_budget=70.0,
     replay_messages={1: 20_000, 100: 2_000}, replay_repeats=3, solve_windows=(4000,), solve_repeats=60,
     slow_solve_repeats=5,
     peer_frols=((3, 3, 15),), memory_windows=(10_000,), fleet_bags=100,

@@ -9,6 +9,7 @@ import functools
 import json
 import math
 import sys
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -200,7 +201,7 @@ class _Search:
 
 
 def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: float, probe,
-                   cpu: dict | None = None):
+                   cpu: dict | None = None, deadline: float = math.inf, clock=None):
     """What ``_zero_loss_limits`` returns, by a search (``_Search``) of each subscriber from its
     seed (the last run's figure) on one grid of rungs ``step`` apart anchored at the bare
     subscriber's seed, so that node / bare is a power of ``step`` and each figure lies within one
@@ -209,8 +210,10 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
     above LADDER_CAP stops there, below 100 msg/s at 0; one stops after SEARCH_RUNS probe runs
     (reruns of a spoiled run, at most SEARCH_RETRIES each, included; its
     figure a lower bound when nothing above it was lossy then, its bracket wider than a rung when
-    a lossy rung lies further up)."""
-    anchor = seeds["bare"]
+    a lossy rung lies further up). No run starts once ``clock()`` has reached ``deadline`` (the
+    quick bench's time): the searches stop where they are, with the same figures and flags as
+    one out of runs (``tried`` ends with "time up" then)."""
+    anchor, clock = seeds["bare"], clock or time.monotonic
 
     def rate(k: int) -> float:
         return float(round(anchor * step**k, -2))
@@ -224,9 +227,11 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
         search = searches[who]
         return not search.done and search.runs < SEARCH_RUNS and 100.0 <= rate(search.index) <= LADDER_CAP
 
-    while running := [who for who in searches if searching(who)]:
+    while (running := [who for who in searches if searching(who)]) and clock() < deadline:
         rungs = {who: searches[who].index for who in running}  # one run of each per round
         for k in sorted(set(rungs.values())):
+            if clock() >= deadline:
+                break
             group = tuple(who for who in running if rungs[who] == k)
             runs: dict[str, int] = {}
             for who, lost in _losses(probe, rate(k), batch, seconds, group, tried, cpu, confirmations=0,
@@ -236,6 +241,8 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
                 searches[who].record(lost == 0, sample_loss)
                 if sample_loss:
                     lossy.add(who)
+    if any(searching(who) for who in searches):
+        tried.append("time up")
     best = {who: rate(s.lossless) if s.lossless is not None else 0.0 for who, s in searches.items()}
     first_loss = {who: rate(s.lossy) for who, s in searches.items() if s.lossy is not None}
     # a lower bound: no sample lost at all, or nothing lossy above the figure when the search stopped
@@ -302,13 +309,16 @@ def _node_row(batch: int, best: dict[str, float], first_loss: dict[str, float], 
 
 
 def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float | None = None,
-                 limits_path: Path = NODE_LIMITS, joint_rates: Sequence[float] = ()) -> Section:
+                 limits_path: Path = NODE_LIMITS, joint_rates: Sequence[float] = (),
+                 budget: float | None = None) -> Section:
     """Highest zero-loss message rate of the node vs a bare rclpy subscriber (``ros_rate_probe``),
     climbing each ladder until both have lost samples (or the publisher cannot keep the rate),
     and storing the figures in ``limits_path``; with ``step``, by the seeded search from the
     figures stored there (``_seeded_limits``; ``rates[batch][-1]`` where there are none).
     ``joint_rates``: also the row of one JointState of JOINTS joints read by JOINTS channels of one
-    node against a bare subscriber of that topic (``ProbeSession.joints_probe``), by the ladder."""
+    node against a bare subscriber of that topic (``ProbeSession.joints_probe``), by the ladder.
+    ``budget``: seconds for the seeded searches, each message type's search given an equal share
+    of what is left when it starts (its processes' start included)."""
     section = Section("node", f"2. Live node: highest rate with zero lost samples ({seconds:g} s per rate)", [
         ("case", "message"), ("node", "node: max msg/s (samples/s)"), ("reference", "bare rclpy: max msg/s"),
         ("ratio", "node / bare"), ("range", "node / bare if each limit is anywhere in its bracket"),
@@ -322,13 +332,17 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
         section.notes.append(f"skipped: {exc}")
         return section
     stored = stored_node_limits(limits_path) if step else {}
-    for batch, ladder in rates.items():
+    end = time.monotonic() + (budget if budget is not None else math.inf)
+    for left, (batch, ladder) in zip(range(len(rates), 0, -1), rates.items()):
         cpu: dict[tuple[str, float], dict[str, float]] = {}
+        now = time.monotonic()
+        deadline = now + (end - now) / left  # an equal share of the time left
         with ProbeSession() as session:  # one per message type: DDS keeps a topic's first type in a participant
             if step:
                 seeds = stored.get("limits", {}).get(str(batch), {})
                 seeds = {who: float(seeds.get(who) or ladder[-1]) for who in ("node", "bare", "foxglove")}
-                best, first_loss, tried, lower = _seeded_limits(batch, seeds, step, seconds, session.probe, cpu)
+                best, first_loss, tried, lower = _seeded_limits(batch, seeds, step, seconds, session.probe, cpu,
+                                                                deadline)
             else:
                 best, first_loss, tried, lower = _zero_loss_limits(batch, ladder, seconds, session.probe, cpu)
         section.rows.append(_node_row(batch, best, first_loss, tried, lower, cpu))
@@ -349,7 +363,11 @@ def node_section(rates: dict[int, Sequence[float]], seconds: float, step: float 
                              f"rate are one rung apart (at most {SEARCH_RUNS} probe runs each, reruns of a run the "
                              f"publisher spoiled, at most {SEARCH_RETRIES} per rate, included): each figure is within "
                              f"x{step:g} of its limit (or its range says how far), and the range column is what "
-                             "node / bare can be at that resolution")
+                             "node / bare can be at that resolution"
+                             + ("" if budget is None else
+                                f"; the searches have {budget:g} s (each message type an equal share of what is "
+                                "left when it starts): one that has not converged then stops where it is ('time up' "
+                                "in the rates tried), its bracket wider than a rung"))
     if section.rows:
         section.notes.append(_store_node_limits(section.rows, limits_path, "quick" if step else "full"))
     section.notes.append("`ros_rate_probe`: one publisher process per message type sends both topics (reliable, "
