@@ -152,6 +152,30 @@ def test_without_documents_the_outcomes_are_the_in_process_ones_and_the_last_goo
     assert (documented.doc, documented.markov, documented.stamp) == (last_ok.doc, last_ok.markov, last_ok.stamp)
 
 
+def test_an_engine_solving_without_documents_documents_its_last_good_model_as_one_with_them():
+    """``StreamingEngine.solve(document=False)`` (replay in process without --out, a fleet task):
+    the outcomes of ``solve()`` without doc and markov, through ok, kept (slow noise on the output)
+    and uncertain; ``documented`` gives the last ok one the doc and markov ``solve()`` gave it, and
+    leaves any other outcome as it is."""
+    v, y = hammerstein_record(12_000, seed=7)
+    slow = np.convolve(np.random.default_rng(3).standard_normal(y.size), 0.97 ** np.arange(200))[: y.size]
+    y[6000:8000] += np.std(y) * slow[6000:8000]
+    pairs = []
+    for here, there in _fed_in_parts(np.arange(v.size) / 1000.0, v, y, 500):
+        pairs.append((here.solve(), there.solve(document=False)))
+    for full, bare in pairs:
+        assert (bare.ok, bare.status, bare.reason) == (full.ok, full.status, full.reason)
+        assert bare.doc is None and bare.markov == ()
+    assert {"ok", "kept", "uncertain"} <= {bare.status for _, bare in pairs}
+    good = [pair for pair in pairs if pair[1].ok]
+    (full, last), earlier = good[-1], good[0][1]
+    documented = there.documented(last)
+    assert len(good) > 10 and full.doc is not None
+    assert (documented.doc, documented.markov, documented.stamp) == (full.doc, full.markov, full.stamp)
+    kept = next(bare for _, bare in pairs if bare.status == "kept")
+    assert there.documented(earlier) is earlier and there.documented(kept) is kept
+
+
 @pytest.mark.parametrize("documents", [True, False])
 def test_estimates_made_by_the_owner_give_the_in_process_outcomes(documents):
     """Replay's reading loop estimates some snapshots itself when the worker is behind

@@ -14,8 +14,9 @@ and read statistics are taken at the snapshot, and the worker holds the publishe
 the output file is the same either way; only the wall time differs. When the worker is behind
 (OWNER_ESTIMATES_FROM solves in flight), the loop estimates the next snapshot itself
 (``estimate_snapshot``, CLS methods) and the worker only decides its outcome: both cores solve,
-the outcomes unchanged. A solver without documents (``SolverProcess(documents=False)``, when
-nothing is written or published) documents the last good model only, at the end.
+the outcomes unchanged. When nothing is written or published (``--json``, a fleet task), the
+solves are not documented (``SolverProcess(documents=False)``, ``StreamingEngine.solve(document=False)``)
+but the last good model, at the end: the same document without a ``to_json`` per solve.
 """
 
 from __future__ import annotations
@@ -185,6 +186,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
     started = time.perf_counter()
 
     in_flight: deque = deque()  # (counters at the snapshot, read statistics then, its stamp) of solves in the solver
+    quiet = writer is None and dashboard is None and publisher is None  # nobody reads the messages (--json, fleet)
     share = solver is not None and portable_estimate(config)  # the loop may estimate for a worker behind
 
     def stamp_of(grid_time: float) -> int:
@@ -197,7 +199,7 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
         last = outcome
         last_ok = last if last.ok else last_ok
         last_stamp_ns = stamp_ns
-        if writer is None and dashboard is None and publisher is None:  # nobody reads the messages (--json)
+        if quiet:
             return
         send(outcome_messages(last, last_ok, stats, last_stamp_ns, frame_id=frame_id, status_name=node_name,
                               complete_status=lambda status: status["values"].extend(read_values)), last_stamp_ns)
@@ -219,8 +221,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
 
     def solve(final: bool = False) -> None:
         engine.flush()
-        if solver is None:
-            outcome = engine.solve()
+        if solver is None:  # quiet: only the last good model's document is read (documented at the end)
+            outcome = engine.solve(document=not quiet)
             emit(outcome, engine.stats, bag_values(read), stamp_of(outcome.stamp))
             return
         snapshot = engine.snapshot()
@@ -260,8 +262,8 @@ def replay_bag(bag: str | Path, excitation: StreamSpec, response: StreamSpec, co
             if progress:
                 progress(done, engine.stats.aligned, engine.stats.solves, False)
         solve(final=True)  # the final model, also after a signal
-        if solver is not None and last_ok is not None and last_ok.doc is None:  # solved without documents
-            documented = solver.document()
+        if last_ok is not None and last_ok.doc is None:  # solved without documents
+            documented = solver.document() if solver is not None else engine.documented(last_ok)
             last = documented if last is last_ok else last
             last_ok = documented
         if diagnose:
@@ -365,7 +367,7 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
     def solve(index: int, bag_time: float) -> None:
         engine = engines[index]
         engine.flush()
-        outcome = engine.solve()
+        outcome = engine.solve(document=writer is not None or dashboard is not None)  # else documented at the end
         last_ok = outcome if outcome.ok else outcomes[index][0]
         outcomes[index] = [last_ok, outcome]
         stamp = input_stamps[index].exact(outcome.stamp) if math.isfinite(outcome.stamp) else bag_time_ns
@@ -405,6 +407,10 @@ def replay_channels(bag: str | Path, channels: list[ChannelReplay], *, frame_id:
                 progress(done, sum(e.stats.aligned for e in engines), sum(e.stats.solves for e in engines), False)
         for i in range(len(channels)):
             solve(i, bag_time)
+            last_ok, last = outcomes[i]
+            if last_ok is not None and last_ok.doc is None:  # solved without documents
+                documented = engines[i].documented(last_ok)
+                outcomes[i] = [documented, documented if last is last_ok else last]
         for i in range(len(channels) if diagnose else 0):
             diagnoses[i] = diagnose_final(engines[i], channels[i].config, diagnosis_window)
             send(i, [diagnosis_message(diagnoses[i])], final_stamps[i])

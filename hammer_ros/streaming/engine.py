@@ -143,6 +143,7 @@ class StreamingEngine:
         self._aligner = StreamAligner(self._config, self.stats, self._append_aligned, self._corr.reset)
         self._stamp = float("nan")
         self._published: IdentificationResult | None = None
+        self._undocumented: tuple[SolveOutcome, np.ndarray, np.ndarray] | None = None  # ``solve(document=False)``
         self._reference_std = 0.0
         self._epoch = next(_EPOCHS)
         self._reference = ReferenceTrack(self._config.window) if reference else None
@@ -240,11 +241,24 @@ class StreamingEngine:
         return EngineSnapshot(self._config, phi_vv, phi_yv, phi_yvv, self._corr.weight, v, y, self._stamp,
                               self.stats.copy(), self._published, self._reference_std, self._epoch, reference)
 
-    def solve(self) -> SolveOutcome:
-        """Solve on the current window (synchronously) and count it in the stats."""
-        outcome = solve_snapshot(self.snapshot())
+    def solve(self, document: bool = True) -> SolveOutcome:
+        """Solve on the current window (synchronously) and count it in the stats. ``document=False``:
+        an ok outcome without ``doc`` and ``markov`` (``solve_snapshot``), for an owner that reads
+        only the last good model's document: ``documented`` adds them to it afterwards."""
+        snapshot = self.snapshot()
+        outcome = solve_snapshot(snapshot, document)
         self.record(outcome)
+        if outcome.ok and not document:
+            self._undocumented = (outcome, snapshot.v, snapshot.y)
         return outcome
+
+    def documented(self, outcome: SolveOutcome) -> SolveOutcome:
+        """The ok outcome of this engine's last ok ``solve(document=False)`` with the ``doc`` and
+        ``markov`` that ``document=True`` gives (``document_outcome`` on its window); any other outcome
+        as it is."""
+        if outcome.doc is not None or self._undocumented is None or self._undocumented[0] is not outcome:
+            return outcome
+        return document_outcome(outcome, *self._undocumented[1:])
 
     def record(self, outcome: SolveOutcome) -> None:
         """Count a solve (done here, in a worker thread or in a ``SolverProcess``) in the stats;
