@@ -269,6 +269,28 @@ def test_unknown_schemas_in_a_bag_are_skipped_unless_asked_for(capsys, tmp_path)
                        "topic /odd: cannot parse its schema 'odd_msgs/msg/Odd'")
 
 
+def test_a_decoder_is_reused_for_the_same_schema_text_only(tmp_path):
+    """Decoders are kept across files by their schema's text (``bag_reader._Decoders``): a second
+    bag of the same type gets the first one's, and a bag with another definition under the same
+    type name gets its own, which reads its own layout (an int32 before the double)."""
+    plain, padded = Bag(tmp_path / "plain.mcap"), Bag(tmp_path / "padded.mcap")
+    plain.channel("/x", "my_msgs/msg/Sample", schema=b"float64 data")
+    padded.channel("/x", "my_msgs/msg/Sample", schema=b"int32 count\nfloat64 data")
+    for k in range(3):
+        plain.write("/x", "my_msgs/msg/Sample", 1 + k, float64_cdr(0.5 + k))
+        padded.write("/x", "my_msgs/msg/Sample", 1 + k, CDR_LE + struct.pack("<i4xd", 7 + k, -0.25 * k))
+    paths = [plain.close(), padded.close()]
+    shutil.copy(paths[0], tmp_path / "again.mcap")
+
+    def read(path: Path) -> list:
+        return [msg for _, _, msg in bag_reader.iter_bag_messages(path, ["/x"])]
+
+    first, second, again = read(paths[0]), read(paths[1]), read(tmp_path / "again.mcap")
+    assert [m.data for m in first] == [0.5, 1.5, 2.5] == [m.data for m in again]
+    assert [(m.count, m.data) for m in second] == [(7, -0.0), (8, -0.25), (9, -0.5)]
+    assert type(again[0]) is type(first[0]) and type(second[0]) is not type(first[0])  # the same decoder, another
+
+
 def test_a_hostile_bag_cannot_exhaust_memory(capsys, tmp_path, monkeypatch):
     """One 10^6-sample message per topic (read and aligned in full), a 24 MB message (over the
     16 MiB limit: skipped unread), and a message claiming 10^8 elements (does not decode)."""

@@ -81,8 +81,15 @@ def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, s
 
 
 
+DECODER_CACHE_SIZE = 64  # schemas whose decoders are kept across files and calls (``_Decoders``)
+_schema_decoders: dict[tuple, Any] = {}
+
+
 class _Decoders:
-    """CDR decoders of one file's channels, built from the ros2msg schemas stored in the bag."""
+    """CDR decoders of one file's channels, built from the ros2msg schemas stored in the bag. A
+    decoder depends on its schema's text alone, so one built for a schema is reused for the same
+    text in any file and call (the topic checks, the field checks and the read of every bag of a
+    fleet parse each type once, not once per bag and pass: ~1 ms of a 20 ms fleet bag)."""
 
     def __init__(self, index: FileIndex) -> None:
         from mcap_ros2.decoder import DecoderFactory
@@ -103,14 +110,20 @@ class _Decoders:
             raise UsageError(f"{where}: no schema stored for it, cannot decode")
         if not schema.data:  # a .db3 without message definitions (Humble's) of a type hammer_ros does not ship
             raise UsageError(f"{where}: no definition of {schema.name} in the bag nor installed, cannot decode")
-        try:
-            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
-                decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)
-        except Exception as exc:  # the schema text comes from the file: any parse failure
-            raise UsageError(f"{where}: cannot parse its schema {schema.name!r} ({error_reason(exc)})") from None
+        key = (channel.message_encoding, schema.name, schema.encoding, bytes(schema.data))
+        decoder = _schema_decoders.get(key)
         if decoder is None:
-            raise UsageError(f"{where}: {channel.message_encoding!r} messages with a {schema.encoding!r} schema "
-                             "are not ROS 2 CDR/ros2msg, cannot decode")
+            try:
+                with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+                    decoder = self._factory.decoder_for(channel.message_encoding, schema)  # (the parser prints)
+            except Exception as exc:  # the schema text comes from the file: any parse failure
+                raise UsageError(f"{where}: cannot parse its schema {schema.name!r} ({error_reason(exc)})") from None
+            if decoder is None:
+                raise UsageError(f"{where}: {channel.message_encoding!r} messages with a {schema.encoding!r} schema "
+                                 "are not ROS 2 CDR/ros2msg, cannot decode")
+            while len(_schema_decoders) >= DECODER_CACHE_SIZE:
+                _schema_decoders.pop(next(iter(_schema_decoders)))
+            _schema_decoders[key] = decoder
         self._decoders[channel.id] = decoder
         return decoder
 
