@@ -291,6 +291,28 @@ def test_a_decoder_is_reused_for_the_same_schema_text_only(tmp_path):
     assert type(again[0]) is type(first[0]) and type(second[0]) is not type(first[0])  # the same decoder, another
 
 
+def test_the_read_after_the_checks_parses_each_chunk_once_and_a_rewritten_bag_again(capsys, tmp_path, monkeypatch):
+    """``RecordScan`` keeps the chunk it parsed last: ``replay`` checks the fields (its first chunk)
+    and then reads every chunk, each parsed once; the same path rewritten with other samples is
+    parsed again and gives its own model."""
+    from hammer_ros.io import bag_index
+
+    parsed = []
+    parse = bag_index.chunk_records
+    monkeypatch.setattr(bag_index, "chunk_records", lambda chunk: parsed.append(chunk) or parse(chunk))
+    path = g1_bag(tmp_path / "g1.mcap", chunk_size=16_384)
+    chunks = sum(1 for group in bag_index.RecordScan(path).groups() if len(group) > 1)
+    parsed.clear()
+    doc, _ = replay_json(capsys, path)
+    assert chunks > 3 and len(parsed) == chunks and pole_error(doc) < 0.02
+    other = g1_bag(tmp_path / "other.mcap", n=4000, chunk_size=16_384)
+    shutil.copy(other, path)  # another bag under the same name
+    parsed.clear()
+    again, _ = replay_json(capsys, path)
+    assert len(parsed) == sum(1 for group in bag_index.RecordScan(other).groups() if len(group) > 1)
+    assert again["samples"] < doc["samples"]
+
+
 def test_a_hostile_bag_cannot_exhaust_memory(capsys, tmp_path, monkeypatch):
     """One 10^6-sample message per topic (read and aligned in full), a 24 MB message (over the
     16 MiB limit: skipped unread), and a message claiming 10^8 elements (does not decode)."""

@@ -78,18 +78,24 @@ def bag_files(path: str | Path) -> list[Path]:
     return list(read_layout(path).files)
 
 
+_last_chunk: tuple[tuple, list] | None = None  # the chunk parsed last and its records (``RecordScan._chunk``)
+
+
 class RecordScan:
     """A sequential, fault-tolerant read of one MCAP file (no summary needed, so an unfinished
     recording is read too). ``groups()`` yields the records of each chunk as one list (a record
     outside chunks as a list of one). A chunk that fails its CRC, decompression or parsing is
     skipped; a record that cannot be read ends the file (its length is unknown, nothing after it
-    can be found). ``damage`` says where, in bytes from the start of the file."""
+    can be found). ``damage`` says where, in bytes from the start of the file. The chunk parsed
+    last is kept (by file, offset, size and modification time), so that a read after the field
+    checks, which parse the first chunk, does not parse it again."""
 
     def __init__(self, file: Path) -> None:
         self.file = file
         self.damage: list[str] = []
         self.header_seen = False
         self.messages = 0  # message records read (chunks included)
+        self._identity: tuple = ()  # (file, size, modification time) while ``groups`` reads
 
     def groups(self) -> Iterator[list[Any]]:
         from mcap.exceptions import McapError
@@ -97,7 +103,8 @@ class RecordScan:
         from mcap.stream_reader import StreamReader
 
         source = readable_file(self.file)
-        size = source.stat().st_size
+        stat = source.stat()
+        size, self._identity = stat.st_size, (str(source), stat.st_size, stat.st_mtime_ns)
         with open(source, "rb") as fh:
             records = StreamReader(fh, emit_chunks=True, record_size_limit=MAX_RECORD_BYTES).records
             offset = 0
@@ -122,14 +129,20 @@ class RecordScan:
                 offset = fh.tell()
 
     def _chunk(self, chunk, offset: int) -> list[Any]:
+        global _last_chunk
         if chunk.uncompressed_size > MAX_RECORD_BYTES:
             self.damage.append(f"chunk at byte {offset:,} claims {chunk.uncompressed_size:,} bytes; skipped")
             return []
+        key, last = (*self._identity, offset), _last_chunk
+        if last is not None and last[0] == key:
+            return list(last[1])
         try:
-            return chunk_records(chunk)
+            records = chunk_records(chunk)
         except Exception as exc:  # damaged data fails in many ways inside zstd/lz4/the parser
             self.damage.append(f"chunk at byte {offset:,} is corrupt ({error_reason(exc)}); skipped")
             return []
+        _last_chunk = (key, records)
+        return list(records)
 
 
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
