@@ -313,6 +313,26 @@ def test_the_read_after_the_checks_parses_each_chunk_once_and_a_rewritten_bag_ag
     assert again["samples"] < doc["samples"]
 
 
+def test_the_scan_steps_over_message_indexes_and_reads_every_message(tmp_path):
+    """``RecordScan`` skips the message index records unparsed (mcap's reader yields one per
+    channel and chunk) and still gives every message, byte for byte, as mcap's own reader does."""
+    from mcap.reader import make_reader
+    from mcap.stream_reader import StreamReader
+
+    from hammer_ros.io import bag_index
+
+    path = g1_bag(tmp_path / "g1.mcap", n=2000, chunk_size=16_384)
+    with open(path, "rb") as f:
+        plain = {type(r).__name__ for r in StreamReader(f).records}
+        f.seek(0)
+        expected = sorted((m.channel_id, m.log_time, bytes(m.data)) for _, _, m in make_reader(f).iter_messages())
+    records = [r for group in bag_index.RecordScan(path).groups() for r in group]
+    kinds = {type(r).__name__ for r in records}
+    assert "MessageIndex" in plain and "MessageIndex" not in kinds and {"Header", "Schema", "Channel"} <= kinds
+    messages = [r for r in records if type(r).__name__ == "Message"]
+    assert sorted((r.channel_id, r.log_time, bytes(r.data)) for r in messages) == expected
+
+
 def test_a_hostile_bag_cannot_exhaust_memory(capsys, tmp_path, monkeypatch):
     """One 10^6-sample message per topic (read and aligned in full), a 24 MB message (over the
     16 MiB limit: skipped unread), and a message claiming 10^8 elements (does not decode)."""
