@@ -16,6 +16,7 @@ import contextlib
 import io
 import struct
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -83,6 +84,7 @@ def check_topics(path: str | Path, specs: tuple[StreamSpec, ...]) -> dict[str, s
 
 DECODER_CACHE_SIZE = 64  # schemas whose decoders are kept across files and calls (``_Decoders``)
 _schema_decoders: dict[tuple, Any] = {}
+_schema_decoders_lock = threading.Lock()  # ``hammer_ros.read`` may run in several threads
 
 
 class _Decoders:
@@ -121,9 +123,10 @@ class _Decoders:
             if decoder is None:
                 raise UsageError(f"{where}: {channel.message_encoding!r} messages with a {schema.encoding!r} schema "
                                  "are not ROS 2 CDR/ros2msg, cannot decode")
-            while len(_schema_decoders) >= DECODER_CACHE_SIZE:
-                _schema_decoders.pop(next(iter(_schema_decoders)))
-            _schema_decoders[key] = decoder
+            with _schema_decoders_lock:
+                while len(_schema_decoders) >= DECODER_CACHE_SIZE:
+                    _schema_decoders.pop(next(iter(_schema_decoders)))
+                _schema_decoders[key] = decoder
         self._decoders[channel.id] = decoder
         return decoder
 
