@@ -79,6 +79,7 @@ def bag_files(path: str | Path) -> list[Path]:
 
 
 _last_chunk: tuple[tuple, list] | None = None  # the chunk parsed last and its records (``RecordScan._chunk``)
+KEEP_CHUNK_BYTES = 16 * 2**20  # a larger chunk is not kept (a process that read a bag holds at most this)
 
 
 class RecordScan:
@@ -88,7 +89,7 @@ class RecordScan:
     skipped; a record that cannot be read ends the file (its length is unknown, nothing after it
     can be found). ``damage`` says where, in bytes from the start of the file. The chunk parsed
     last is kept (by file, offset, size and modification time), so that a read after the field
-    checks, which parse the first chunk, does not parse it again."""
+    checks, which parse the first chunk, does not parse it again (up to KEEP_CHUNK_BYTES)."""
 
     def __init__(self, file: Path) -> None:
         self.file = file
@@ -140,7 +141,7 @@ class RecordScan:
         except Exception as exc:  # damaged data fails in many ways inside zstd/lz4/the parser
             self.damage.append(f"chunk at byte {offset:,} is corrupt ({error_reason(exc)}); skipped")
             return []
-        _last_chunk = (key, records)
+        _last_chunk = (key, records) if chunk.uncompressed_size <= KEEP_CHUNK_BYTES else None
         return list(records)
 
 
