@@ -201,7 +201,7 @@ class _Search:
 
 
 def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: float, probe,
-                   cpu: dict | None = None, deadline: float = math.inf, clock=None):
+                   cpu: dict | None = None, deadline: float = math.inf):
     """What ``_zero_loss_limits`` returns, by a search (``_Search``) of each subscriber from its
     seed (the last run's figure) on one grid of rungs ``step`` apart anchored at the bare
     subscriber's seed, so that node / bare is a power of ``step`` and each figure lies within one
@@ -210,10 +210,10 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
     above LADDER_CAP stops there, below 100 msg/s at 0; one stops after SEARCH_RUNS probe runs
     (reruns of a spoiled run, at most SEARCH_RETRIES each, included; its
     figure a lower bound when nothing above it was lossy then, its bracket wider than a rung when
-    a lossy rung lies further up). No run starts once ``clock()`` has reached ``deadline`` (the
+    a lossy rung lies further up). No run starts once ``time.monotonic()`` has reached ``deadline`` (the
     quick bench's time): the searches stop where they are, with the same figures and flags as
     one out of runs (``tried`` ends with "time up" then)."""
-    anchor, clock = seeds["bare"], clock or time.monotonic
+    anchor = seeds["bare"]
 
     def rate(k: int) -> float:
         return float(round(anchor * step**k, -2))
@@ -227,10 +227,10 @@ def _seeded_limits(batch: int, seeds: dict[str, float], step: float, seconds: fl
         search = searches[who]
         return not search.done and search.runs < SEARCH_RUNS and 100.0 <= rate(search.index) <= LADDER_CAP
 
-    while (running := [who for who in searches if searching(who)]) and clock() < deadline:
+    while (running := [who for who in searches if searching(who)]) and time.monotonic() < deadline:
         rungs = {who: searches[who].index for who in running}  # one run of each per round
         for k in sorted(set(rungs.values())):
-            if clock() >= deadline:
+            if time.monotonic() >= deadline:
                 break
             group = tuple(who for who in running if rungs[who] == k)
             runs: dict[str, int] = {}
