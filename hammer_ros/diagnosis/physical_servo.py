@@ -22,10 +22,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..errors import IdentificationError
 from ..identification.compiled_loops import physical_servo_loop
+from ..identification.levenberg_marquardt import levenberg_marquardt
 from ..identification.runs import Runs, several
 from ..identification.simulation_error import refine_starts
 from .servo_loop import MAX_DELAY, ServoFit, fit_servo_loop, from_first_positions
@@ -105,8 +105,8 @@ def projected_start(servo: ServoFit, u: np.ndarray, y: np.ndarray, runs: Runs | 
     limit0 = float(np.max(np.abs(target))) or 1.0
     gain0 = slope if slope > 0 else limit0 / (float(np.max(np.abs(e))) or 1.0)
     offset0 = (float(f(np.zeros(1))[0]) - c) / gain0
-    found = least_squares(lambda t: np.clip(t[0] * (e + t[2]), -abs(t[1]), abs(t[1])) - target,
-                          [gain0, limit0, offset0], method="lm", max_nfev=200)
+    found = levenberg_marquardt(lambda t: np.clip(t[0] * (e + t[2]), -abs(t[1]), abs(t[1])) - target,
+                                np.array([gain0, limit0, offset0]), 200)
     gain, limit, offset = found.x
     friction = phi(w) + float(servo.theta[-1]) * np.sign(w)
     (viscous, coulomb), *_ = np.linalg.lstsq(np.column_stack([w, np.sign(w)]), friction, rcond=None)

@@ -8,7 +8,8 @@ estimation data:
 
     theta_hat = argmin_theta sum_k (y(k) - y_sim(k; theta))^2,
 
-started from the papers' estimate (Levenberg-Marquardt, finite-difference Jacobian).
+started from the papers' estimate (Levenberg-Marquardt, finite-difference Jacobian:
+``levenberg_marquardt``, the same in every process).
 """
 
 from __future__ import annotations
@@ -17,7 +18,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import signal
-from scipy.optimize import least_squares
+
+from .levenberg_marquardt import levenberg_marquardt
 
 Simulator = Callable[[np.ndarray], np.ndarray]
 
@@ -78,7 +80,8 @@ def stabilised_denominator(a: np.ndarray, margin: float = 0.999) -> np.ndarray:
 
 def refine(simulate: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, y: np.ndarray,
            max_iterations: int = 30, skip: int = 0) -> np.ndarray:
-    """theta minimising ||y - simulate(theta)||^2 over samples ``skip``.. (LM from theta0).
+    """theta minimising ||y - simulate(theta)||^2 over samples ``skip``.. (``levenberg_marquardt`` from
+    theta0, at most ``max_iterations`` trial points).
 
     Non-finite or exploding simulations (an unstable intermediate model) are clipped to a
     bound far outside the data, which the LM step control rejects. Returns theta0 when the
@@ -99,8 +102,7 @@ def refine(simulate: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, y: 
     if theta0.size == 0 or theta0.size > y.size:
         return theta0
     try:
-        solution = least_squares(residuals, theta0, method="lm", x_scale="jac",
-                                 max_nfev=max_iterations, ftol=1e-6, xtol=1e-6)
+        solution = levenberg_marquardt(residuals, theta0, max_iterations, ftol=1e-6, xtol=1e-6)
     except (ValueError, np.linalg.LinAlgError):
         return theta0
     return solution.x if 2.0 * solution.cost < start else theta0
